@@ -1,0 +1,172 @@
+"""Pinhole camera (OpenCV convention) and rigid-pose helpers.
+
+Camera frame: x right, y down, z forward. A pixel's centre has integer coordinates,
+so pixel (u, v) spans [u - 0.5, u + 0.5]. Poses are 4x4 ``T_cam_from_obj`` matrices.
+"""
+
+from __future__ import annotations
+
+import numpy as np
+
+from pixie.errors import CameraError
+
+
+def make_K(fx: float, fy: float, cx: float, cy: float) -> np.ndarray:
+    """Build a 3x3 intrinsic matrix."""
+    return np.array([[fx, 0.0, cx], [0.0, fy, cy], [0.0, 0.0, 1.0]], dtype=np.float64)
+
+
+def parse_K(text: str) -> np.ndarray:
+    """Parse ``"fx,fy,cx,cy"`` or nine comma-separated row-major values into K."""
+    try:
+        vals = [float(v) for v in text.replace(" ", "").split(",") if v]
+    except ValueError as exc:
+        raise CameraError(f"cannot parse intrinsics {text!r}: expected 'fx,fy,cx,cy'") from exc
+    if len(vals) == 4:
+        return make_K(*vals)
+    if len(vals) == 9:
+        return np.asarray(vals, dtype=np.float64).reshape(3, 3)
+    raise CameraError(f"intrinsics {text!r} have {len(vals)} values; expected 4 (fx,fy,cx,cy) or 9")
+
+
+def validate_K(K: np.ndarray, image_size: tuple[int, int] | None = None) -> np.ndarray:
+    """Check that K is a usable pinhole matrix and return it as float64.
+
+    Parameters
+    ----------
+    K : array_like, shape (3, 3)
+    image_size : (height, width), optional
+        When given, the principal point must lie inside the image.
+
+    Raises
+    ------
+    CameraError
+        Wrong shape, non-finite entries, non-positive focal lengths, a bottom row other than
+        (0, 0, 1), or a principal point outside the image.
+    """
+    K = np.asarray(K, dtype=np.float64)
+    if K.shape != (3, 3):
+        raise CameraError(f"K must be 3x3, got shape {K.shape}")
+    if not np.all(np.isfinite(K)):
+        raise CameraError("K has non-finite entries")
+    if K[0, 0] <= 0 or K[1, 1] <= 0:
+        raise CameraError(f"K has non-positive focal length (fx={K[0, 0]}, fy={K[1, 1]})")
+    if not np.allclose(K[2], [0, 0, 1]) or abs(K[1, 0]) > 1e-9:
+        raise CameraError(f"K's last row must be (0, 0, 1) and K[1,0] zero, got {K[2].tolist()}")
+    if image_size is not None:
+        h, w = image_size
+        if not (0 <= K[0, 2] <= w and 0 <= K[1, 2] <= h):
+            raise CameraError(
+                f"principal point ({K[0, 2]:.1f}, {K[1, 2]:.1f}) lies outside the {w}x{h} image"
+            )
+    return K
+
+
+def validate_pose(T: np.ndarray, name: str = "T_cam_from_obj") -> np.ndarray:
+    """Check that T is a finite 4x4 rigid transform (orthonormal rotation, det +1)."""
+    T = np.asarray(T, dtype=np.float64)
+    if T.shape != (4, 4):
+        raise CameraError(f"{name} must be 4x4, got shape {T.shape}")
+    if not np.all(np.isfinite(T)):
+        raise CameraError(f"{name} has non-finite entries")
+    R = T[:3, :3]
+    if not np.allclose(R @ R.T, np.eye(3), atol=1e-5) or np.linalg.det(R) < 0:
+        raise CameraError(f"{name} rotation is not a proper rotation matrix")
+    return T
+
+
+def make_T(R: np.ndarray, t: np.ndarray) -> np.ndarray:
+    """Stack a rotation (3x3) and a translation (3,) into a 4x4 transform."""
+    T = np.eye(4)
+    T[:3, :3] = R
+    T[:3, 3] = np.asarray(t, dtype=np.float64).reshape(3)
+    return T
+
+
+def invert_T(T: np.ndarray) -> np.ndarray:
+    """Inverse of a rigid 4x4 transform."""
+    R, t = T[:3, :3], T[:3, 3]
+    return make_T(R.T, -R.T @ t)
+
+
+def transform_points(T: np.ndarray, X: np.ndarray) -> np.ndarray:
+    """Apply a 4x4 transform to points of shape (..., 3)."""
+    return X @ T[:3, :3].T + T[:3, 3]
+
+
+def project(K: np.ndarray, X_cam: np.ndarray) -> np.ndarray:
+    """Project camera-frame points (..., 3) to pixel coordinates (..., 2)."""
+    z = X_cam[..., 2:3]
+    uv1 = (X_cam / z) @ K.T
+    return uv1[..., :2]
+
+
+def backproject(K: np.ndarray, uv: np.ndarray, depth: np.ndarray) -> np.ndarray:
+    """Back-project pixels (..., 2) with z-depth (...) to camera-frame points (..., 3)."""
+    uv = np.asarray(uv, dtype=np.float64)
+    x = (uv[..., 0] - K[0, 2]) / K[0, 0]
+    y = (uv[..., 1] - K[1, 2]) / K[1, 1]
+    z = np.asarray(depth, dtype=np.float64)
+    return np.stack([x * z, y * z, z], axis=-1)
+
+
+def backproject_depth(K: np.ndarray, depth: np.ndarray) -> np.ndarray:
+    """Back-project a whole depth map (H, W) to camera-frame points (H, W, 3); 0 depth gives 0."""
+    h, w = depth.shape
+    v, u = np.mgrid[0:h, 0:w]
+    return backproject(K, np.stack([u, v], axis=-1), depth)
+
+
+def pixel_rays(K: np.ndarray, height: int, width: int) -> np.ndarray:
+    """Ray directions (H, W, 3) through pixel centres, scaled so that z = 1."""
+    v, u = np.mgrid[0:height, 0:width].astype(np.float64)
+    d = np.empty((height, width, 3))
+    d[..., 0] = (u - K[0, 2]) / K[0, 0]
+    d[..., 1] = (v - K[1, 2]) / K[1, 1]
+    d[..., 2] = 1.0
+    return d
+
+
+def rot_z(angle_rad: float) -> np.ndarray:
+    """Rotation about the camera's optical axis (z) by ``angle_rad``."""
+    c, s = np.cos(angle_rad), np.sin(angle_rad)
+    return np.array([[c, -s, 0.0], [s, c, 0.0], [0.0, 0.0, 1.0]])
+
+
+def look_at(eye: np.ndarray, target: np.ndarray, up: np.ndarray) -> np.ndarray:
+    """``T_cam_from_obj`` of a camera at ``eye`` looking at ``target`` (object frame).
+
+    The camera's -y axis (image up) is as close to ``up`` as possible.
+    """
+    eye, target, up = (np.asarray(a, dtype=np.float64) for a in (eye, target, up))
+    z = target - eye
+    z /= np.linalg.norm(z)
+    if abs(np.dot(z, up / np.linalg.norm(up))) > 0.999:  # up parallel to the view: pick another
+        up = np.array([1.0, 0.0, 0.0]) if abs(z[0]) < 0.9 else np.array([0.0, 1.0, 0.0])
+    x = np.cross(z, -up)
+    x /= np.linalg.norm(x)
+    y = np.cross(z, x)
+    R_obj_from_cam = np.stack([x, y, z], axis=1)
+    return invert_T(make_T(R_obj_from_cam, eye))
+
+
+def rotation_angle_deg(R_a: np.ndarray, R_b: np.ndarray) -> float:
+    """Geodesic angle between two rotations, degrees."""
+    c = (np.trace(R_a.T @ R_b) - 1.0) / 2.0
+    return float(np.degrees(np.arccos(np.clip(c, -1.0, 1.0))))
+
+
+def optical_axis_in_object(T: np.ndarray) -> np.ndarray:
+    """Unit viewing direction (camera z axis) expressed in the object frame."""
+    return T[:3, :3].T @ np.array([0.0, 0.0, 1.0])
+
+
+def scale_K(K: np.ndarray, sx: float, sy: float | None = None) -> np.ndarray:
+    """Intrinsics of an image resized by (sx, sy), pixel-centre convention preserved."""
+    sy = sx if sy is None else sy
+    K2 = K.copy()
+    K2[0, 0] *= sx
+    K2[1, 1] *= sy
+    K2[0, 2] = (K[0, 2] + 0.5) * sx - 0.5
+    K2[1, 2] = (K[1, 2] + 0.5) * sy - 0.5
+    return K2

@@ -1,0 +1,136 @@
+"""One configuration object with the paper's defaults, overridable from YAML and the CLI.
+
+Sections follow the pipeline: ``refs`` (offline reference views), ``query`` (cropping),
+``match`` (cross-modality matcher), ``pose`` (lifting + PnP/RANSAC) and ``refine`` (view selection).
+Override from the command line with ``--set section.key=value`` (values parsed as YAML).
+"""
+
+from __future__ import annotations
+
+import dataclasses
+from dataclasses import dataclass, field
+from pathlib import Path
+from typing import Any
+
+import yaml
+
+from pixie.errors import ConfigError
+
+
+@dataclass
+class RefsConfig:
+    """Step 1: reference views rendered offline."""
+
+    n_fibonacci: int = 115  # + 6 canonical box-aligned views = 121
+    canonical: bool = True
+    rotations: int = 8  # in-plane rotations, 360/rotations degrees apart (45°)
+    size: int = 512  # side of the square, object-centred reference images, px
+    focal_factor: float = 4.0  # K_start focal = focal_factor * size (a long lens: weak perspective like far-away objects)
+    crop_pad: float = 1.2  # square crop side = pad * max(bbox w, h) of the object's projection
+    encodings: list[str] = field(default_factory=lambda: ["shade3_edges", "depth", "normal"])
+    smooth_normals: bool = True
+    store_rotated_encodings: bool = False  # keep the 8-bit images of every rotation (large); roll 0 always kept
+
+
+@dataclass
+class QueryConfig:
+    """Step 2: the query crop."""
+
+    crop_pad: float = 1.2  # same meaning as refs.crop_pad, applied to the given bbox / mask box
+    mask_keypoints: bool = True  # drop query keypoints outside a given mask
+
+
+@dataclass
+class MatchConfig:
+    """Step 3: cross-modality matching."""
+
+    matcher: str = "aliked-nn"
+    max_keypoints: int = 1024
+    window: float | None = 0.125  # spatial window for NN matchers, fraction of refs.size (64 px at 512)
+    in_plane: str = "reference"  # 'reference': rotated references (features precomputed); 'query': rotate the query crop
+    weights_dir: str | None = None
+    device: str = "cpu"
+
+
+@dataclass
+class PoseConfig:
+    """Step 4: lifting and PnP + RANSAC."""
+
+    ransac_iterations: int = 1000
+    reprojection_px: float = 5.0  # in original-image pixels
+    confidence: float = 0.9999
+    min_inliers: int = 6
+    solver: str = "opencv"  # 'opencv' (EPnP+RANSAC, LM refinement) or 'poselib'
+    mode: str = "per_view"  # 'per_view': best view wins; 'concat': all views in one PnP problem
+    scoring: str = "combined"  # 'inliers' (paper), 'combined' (inliers x silhouette agreement)
+    depth_from_bbox: bool = True  # re-derive z from the crop scale where PnP depth is unreliable
+    top_k_views: int = 8  # coarse candidates kept for scoring / multi-hypothesis output
+    views: str = "all"  # 'all' reference views or 'canonical' (the paper's 6 coarse views) for the first pass
+
+
+@dataclass
+class RefineConfig:
+    """Step 5: iterative view selection (the paper's), optional extras."""
+
+    view_selection_iters: int = 1
+    n_hypotheses: int = 5
+
+
+@dataclass
+class PixieConfig:
+    refs: RefsConfig = field(default_factory=RefsConfig)
+    query: QueryConfig = field(default_factory=QueryConfig)
+    match: MatchConfig = field(default_factory=MatchConfig)
+    pose: PoseConfig = field(default_factory=PoseConfig)
+    refine: RefineConfig = field(default_factory=RefineConfig)
+
+    def to_dict(self) -> dict[str, Any]:
+        return dataclasses.asdict(self)
+
+    @classmethod
+    def from_dict(cls, data: dict[str, Any] | None) -> "PixieConfig":
+        cfg = cls()
+        for section, values in (data or {}).items():
+            for key, value in (values or {}).items():
+                cfg.set(f"{section}.{key}", value)
+        return cfg
+
+    @classmethod
+    def from_yaml(cls, path: str | Path) -> "PixieConfig":
+        try:
+            data = yaml.safe_load(Path(path).read_text())
+        except (OSError, yaml.YAMLError) as exc:
+            raise ConfigError(f"cannot read config {path}: {exc}") from exc
+        if data is not None and not isinstance(data, dict):
+            raise ConfigError(f"config {path} must be a mapping of sections")
+        return cls.from_dict(data)
+
+    def set(self, dotted: str, value: Any) -> None:
+        """Set ``section.key`` to ``value`` (strings are parsed as YAML scalars/lists)."""
+        if "." not in dotted:
+            raise ConfigError(f"config key {dotted!r} must look like section.key")
+        section, key = dotted.split(".", 1)
+        sec = getattr(self, section, None)
+        if sec is None or not dataclasses.is_dataclass(sec):
+            raise ConfigError(f"unknown config section {section!r}; sections: {[f.name for f in dataclasses.fields(self)]}")
+        names = {f.name: f for f in dataclasses.fields(sec)}
+        if key not in names:
+            raise ConfigError(f"unknown key {key!r} in section {section!r}; keys: {sorted(names)}")
+        if isinstance(value, str):
+            value = yaml.safe_load(value) if value != "" else value
+        default = getattr(sec, key)
+        if isinstance(default, bool) and not isinstance(value, bool):
+            raise ConfigError(f"{dotted} expects true/false, got {value!r}")
+        if isinstance(default, (int, float)) and not isinstance(default, bool) and value is not None:
+            if not isinstance(value, (int, float)) or isinstance(value, bool):
+                raise ConfigError(f"{dotted} expects a number, got {value!r}")
+            value = type(default)(value) if not (isinstance(default, int) and isinstance(value, float) and value != int(value)) else value
+        setattr(sec, key, value)
+
+    def apply_overrides(self, overrides: list[str] | None) -> "PixieConfig":
+        for item in overrides or []:
+            if "=" not in item:
+                raise ConfigError(f"override {item!r} must look like section.key=value")
+            k, v = item.split("=", 1)
+            self.set(k.strip(), v.strip())
+        return self

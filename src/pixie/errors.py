@@ -1,0 +1,33 @@
+"""Exceptions with messages that name the problem and the input that caused it."""
+
+
+class PixieError(Exception):
+    """Base class of every error pixie raises on purpose."""
+
+
+class MeshError(PixieError):
+    """The mesh is missing, unreadable, empty, degenerate or in implausible units."""
+
+
+class CameraError(PixieError):
+    """Intrinsics or a pose are invalid (zero focal length, principal point off the image, non-rigid)."""
+
+
+class ImageError(PixieError):
+    """An image is missing, unreadable, of the wrong shape, or a crop of it is empty."""
+
+
+class ReferenceSetError(PixieError):
+    """A reference set is missing, corrupt, of another format version, or built from another mesh."""
+
+
+class WeightsError(PixieError):
+    """Matcher weights could not be found or loaded; the message lists where pixie looked."""
+
+
+class DatasetError(PixieError):
+    """A dataset folder or a results file does not follow the BOP format."""
+
+
+class ConfigError(PixieError):
+    """A configuration key or value is unknown or invalid."""

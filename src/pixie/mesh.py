@@ -1,0 +1,210 @@
+"""Loading CAD meshes (PLY / OBJ / STL / GLB) in millimetres, with validation.
+
+pixie works in millimetres throughout. Meshes in metres (a classic 1000x mistake) are
+detected from their size and either converted (``units='auto'``) or warned about.
+"""
+
+from __future__ import annotations
+
+import hashlib
+import logging
+import warnings
+from dataclasses import dataclass, field
+from pathlib import Path
+
+import numpy as np
+
+from pixie.errors import MeshError
+
+log = logging.getLogger(__name__)
+
+UNIT_SCALE = {"mm": 1.0, "cm": 10.0, "m": 1000.0}
+# Plausible diameters of a part seen by a camera, in mm: a screw head to a car door.
+PLAUSIBLE_DIAMETER_MM = (2.0, 5000.0)
+
+
+@dataclass
+class Mesh:
+    """A triangle mesh in millimetres.
+
+    Attributes
+    ----------
+    vertices : (V, 3) float64, mm
+    faces : (F, 3) int64
+    vertex_normals : (V, 3) float64, unit length
+    name : str
+    source_hash : str
+        SHA-256 of the file bytes (or of the arrays for in-memory meshes); reference sets record it.
+    """
+
+    vertices: np.ndarray
+    faces: np.ndarray
+    vertex_normals: np.ndarray
+    name: str = "mesh"
+    source_hash: str = ""
+    _diameter: float | None = field(default=None, repr=False)
+
+    @property
+    def bbox_min(self) -> np.ndarray:
+        return self.vertices.min(axis=0)
+
+    @property
+    def bbox_max(self) -> np.ndarray:
+        return self.vertices.max(axis=0)
+
+    @property
+    def extent(self) -> np.ndarray:
+        """Size of the axis-aligned bounding box (3,), mm."""
+        return self.bbox_max - self.bbox_min
+
+    @property
+    def center(self) -> np.ndarray:
+        """Centre of the axis-aligned bounding box (3,), mm."""
+        return 0.5 * (self.bbox_min + self.bbox_max)
+
+    @property
+    def diameter(self) -> float:
+        """Largest distance between two vertices (exact on the convex hull), mm."""
+        if self._diameter is None:
+            self._diameter = _diameter(self.vertices)
+        return self._diameter
+
+    @property
+    def bounding_radius(self) -> float:
+        """Radius of the sphere about ``center`` that contains every vertex, mm."""
+        return float(np.linalg.norm(self.vertices - self.center, axis=1).max())
+
+    def to_trimesh(self):
+        import trimesh
+
+        return trimesh.Trimesh(self.vertices, self.faces, vertex_normals=self.vertex_normals, process=False)
+
+    def sample_points(self, n: int, seed: int = 0) -> np.ndarray:
+        """``n`` points sampled uniformly on the surface (area-weighted), mm."""
+        rng = np.random.default_rng(seed)
+        tri = self.vertices[self.faces]
+        area = 0.5 * np.linalg.norm(np.cross(tri[:, 1] - tri[:, 0], tri[:, 2] - tri[:, 0]), axis=1)
+        idx = rng.choice(len(tri), size=n, p=area / area.sum())
+        r1, r2 = rng.random(n), rng.random(n)
+        s = np.sqrt(r1)
+        w = np.stack([1 - s, s * (1 - r2), s * r2], axis=1)
+        return np.einsum("nk,nkd->nd", w, tri[idx])
+
+
+def _diameter(vertices: np.ndarray) -> float:
+    pts = vertices
+    if len(pts) > 64:
+        try:
+            from scipy.spatial import ConvexHull
+
+            pts = vertices[ConvexHull(vertices).vertices]
+        except Exception:  # degenerate (flat) meshes: fall back to all points, chunked
+            pts = vertices
+    best = 0.0
+    for i in range(0, len(pts), 2048):
+        d = np.linalg.norm(pts[i : i + 2048, None, :] - pts[None, :, :], axis=-1)
+        best = max(best, float(d.max()))
+    return best
+
+
+def from_arrays(vertices: np.ndarray, faces: np.ndarray, name: str = "mesh", units: str = "mm") -> Mesh:
+    """Build a validated :class:`Mesh` from arrays (units as for :func:`load_mesh`)."""
+    v = np.asarray(vertices, dtype=np.float64)
+    f = np.asarray(faces)
+    digest = hashlib.sha256(v.tobytes() + np.asarray(f, dtype=np.int64).tobytes()).hexdigest()
+    return _finish(v, f, name, digest, units)
+
+
+def load_mesh(path: str | Path, units: str = "mm") -> Mesh:
+    """Load a triangle mesh and return it in millimetres.
+
+    Parameters
+    ----------
+    path : str or Path
+        PLY, OBJ, STL, GLB/GLTF or OFF file. Multi-part scenes are merged.
+    units : {'mm', 'cm', 'm', 'auto'}
+        Units the file is written in. ``'auto'`` takes metres when the bounding-box diagonal
+        is below 2 (a part under 2 mm is unlikely), else millimetres.
+
+    Raises
+    ------
+    MeshError
+        Missing or unreadable file, no triangles, NaN/inf vertices, zero surface area,
+        or unknown units.
+    """
+    import trimesh
+
+    path = Path(path)
+    if not path.is_file():
+        raise MeshError(f"mesh file not found: {path}")
+    data = path.read_bytes()
+    if not data:
+        raise MeshError(f"mesh file is empty: {path}")
+    try:
+        with warnings.catch_warnings():
+            warnings.simplefilter("ignore")
+            loaded = trimesh.load(path, force="mesh", process=False)
+    except Exception as exc:  # trimesh raises many types on corrupt files
+        raise MeshError(f"cannot read mesh {path}: {type(exc).__name__}: {exc}") from exc
+    if not isinstance(loaded, trimesh.Trimesh):
+        raise MeshError(f"{path} holds no triangle mesh (got {type(loaded).__name__})")
+    return _finish(
+        np.asarray(loaded.vertices, dtype=np.float64),
+        np.asarray(loaded.faces),
+        path.stem,
+        hashlib.sha256(data).hexdigest(),
+        units,
+    )
+
+
+def _finish(v: np.ndarray, f: np.ndarray, name: str, digest: str, units: str) -> Mesh:
+    if units not in (*UNIT_SCALE, "auto"):
+        raise MeshError(f"unknown units {units!r}; use one of mm, cm, m, auto")
+    if v.ndim != 2 or v.shape[1] != 3 or len(v) == 0:
+        raise MeshError(f"mesh {name!r} has no vertices (shape {v.shape})")
+    if f.ndim != 2 or f.shape[1] != 3 or len(f) == 0:
+        raise MeshError(f"mesh {name!r} has no triangles (faces shape {f.shape}); only triangle meshes are supported")
+    if not np.all(np.isfinite(v)):
+        raise MeshError(f"mesh {name!r} has {int((~np.isfinite(v)).any(axis=1).sum())} NaN/inf vertices")
+    f = f.astype(np.int64)
+    if f.min() < 0 or f.max() >= len(v):
+        raise MeshError(f"mesh {name!r} has face indices outside its {len(v)} vertices")
+    diag = float(np.linalg.norm(v.max(0) - v.min(0)))
+    if units == "auto":
+        units = "m" if diag < 2.0 else "mm"
+        log.info("mesh %s: units=auto chose %s (bbox diagonal %.4g in file units)", name, units, diag)
+    v = v * UNIT_SCALE[units]
+    tri = v[f]
+    area = 0.5 * np.linalg.norm(np.cross(tri[:, 1] - tri[:, 0], tri[:, 2] - tri[:, 0]), axis=1)
+    if area.sum() <= 1e-12:
+        raise MeshError(f"mesh {name!r} has zero surface area (all triangles degenerate)")
+    lo, hi = PLAUSIBLE_DIAMETER_MM
+    diag_mm = diag * UNIT_SCALE[units]
+    if not lo <= diag_mm <= hi:
+        hint = "metres? try --units m" if diag_mm < lo else "already in mm? try --units mm"
+        warnings.warn(
+            f"mesh {name!r} is {diag_mm:.4g} mm across in the declared units ({units}); "
+            f"this is implausible for a part ({hint})",
+            UserWarning,
+            stacklevel=3,
+        )
+    normals = _vertex_normals(v, f, area)
+    return Mesh(vertices=v, faces=f, vertex_normals=normals, name=name, source_hash=digest)
+
+
+def _vertex_normals(v: np.ndarray, f: np.ndarray, area: np.ndarray) -> np.ndarray:
+    """Area-weighted vertex normals, recomputed from geometry (files' normals are often stale)."""
+    tri = v[f]
+    fn = np.cross(tri[:, 1] - tri[:, 0], tri[:, 2] - tri[:, 0])  # length = 2 * area
+    vn = np.zeros_like(v)
+    for k in range(3):
+        np.add.at(vn, f[:, k], fn)
+    norm = np.linalg.norm(vn, axis=1, keepdims=True)
+    return np.where(norm > 0, vn / np.maximum(norm, 1e-30), 0.0)
+
+
+def face_normals(mesh: Mesh) -> np.ndarray:
+    """Unit face normals (F, 3) following the winding order."""
+    tri = mesh.vertices[mesh.faces]
+    fn = np.cross(tri[:, 1] - tri[:, 0], tri[:, 2] - tri[:, 0])
+    return fn / np.maximum(np.linalg.norm(fn, axis=1, keepdims=True), 1e-30)

@@ -1,0 +1,382 @@
+"""Reference sets: everything inference needs about one object, rendered and extracted offline.
+
+For each view i (6 canonical + N Fibonacci) and in-plane roll j the set holds the pose
+``T_cam_from_obj[i, j]`` and the intrinsics ``K[i, j]`` of an object-centred square crop rendered
+directly at ``size`` px (no resampling). For roll 0 it stores depth D_i, normals N_i and, derived
+exactly from them, object-space XYZ_i (back-projection with K then T⁻¹). Matcher features of every
+encoded image are stored together with the object-space XYZ of each keypoint, so inference neither
+renders nor re-extracts anything.
+
+Files are ``.npz`` written atomically (temp file + rename) with a format version, the mesh's content
+hash and the build config; a stale, foreign or corrupt file raises :class:`ReferenceSetError`.
+"""
+
+from __future__ import annotations
+
+import json
+import os
+import tempfile
+import time
+import zipfile
+from dataclasses import dataclass, field
+from pathlib import Path
+from typing import Callable
+
+import numpy as np
+
+from pixie import __version__
+from pixie.camera import backproject, backproject_depth, invert_T, transform_points
+from pixie.config import RefsConfig
+from pixie.encode import check_encodings, encode
+from pixie.errors import ReferenceSetError
+from pixie.mesh import Mesh, from_arrays
+from pixie.render import Renderer
+from pixie.views import camera_distance, roll, roll_angles, square_crop_K, start_K, view_poses
+
+FORMAT_VERSION = 1
+
+
+@dataclass
+class ReferenceSet:
+    """Offline references of one mesh.
+
+    Attributes
+    ----------
+    poses : (V, R, 4, 4) T_cam_from_obj of every view and roll
+    Ks : (V, R, 3, 3) intrinsics of each object-centred ``size`` x ``size`` reference image
+    K_start : (3, 3) the uncropped rendering intrinsics
+    canonical : (V,) bool, True for the 6 box-aligned views
+    depth : (V, S, S) float32, roll 0, mm (0 = background)
+    normals : (V, S, S, 3) float32, roll 0, camera frame
+    encodings : name -> (V, S, S[, 3]) uint8 (roll 0) or (V, R, S, S[, 3]) when all rolls are kept
+    features : key "matcher/encoding" -> packed arrays (see :mod:`pixie.matching`), one entry per
+        (view, roll) in row-major order, plus "xyz" (object-space point of each keypoint, NaN off-mask)
+    """
+
+    mesh: Mesh
+    config: RefsConfig
+    poses: np.ndarray
+    Ks: np.ndarray
+    K_start: np.ndarray
+    canonical: np.ndarray
+    depth: np.ndarray
+    normals: np.ndarray
+    encodings: dict[str, np.ndarray] = field(default_factory=dict)
+    features: dict[str, dict[str, np.ndarray]] = field(default_factory=dict)
+    build_seconds: float = 0.0
+    _xyz: np.ndarray | None = field(default=None, repr=False)
+
+    @property
+    def n_views(self) -> int:
+        return self.poses.shape[0]
+
+    @property
+    def n_rolls(self) -> int:
+        return self.poses.shape[1]
+
+    @property
+    def size(self) -> int:
+        return self.depth.shape[1]
+
+    @property
+    def masks(self) -> np.ndarray:
+        return self.depth > 0
+
+    @property
+    def xyz(self) -> np.ndarray:
+        """(V, S, S, 3) object-space points of roll 0, back-projected from depth with K then T⁻¹."""
+        if self._xyz is None:
+            out = np.zeros((*self.depth.shape, 3), np.float32)
+            for i in range(self.n_views):
+                Xc = backproject_depth(self.Ks[i, 0], self.depth[i])
+                out[i] = np.where(self.masks[i][..., None], transform_points(invert_T(self.poses[i, 0]), Xc), 0)
+            self._xyz = out
+        return self._xyz
+
+    def feature_key(self, matcher: str, encoding: str) -> str:
+        return f"{matcher}/{encoding}"
+
+    def has_features(self, matcher: str, encodings: list[str]) -> bool:
+        return all(self.feature_key(matcher, e) in self.features for e in encodings)
+
+
+def build_reference_set(
+    mesh: Mesh,
+    config: RefsConfig | None = None,
+    matcher=None,
+    progress: Callable[[int, int], None] | None = None,
+    workers: int = 1,
+) -> ReferenceSet:
+    """Render, encode and (optionally) extract matcher features for every view and roll.
+
+    Parameters
+    ----------
+    mesh : Mesh
+    config : RefsConfig
+    matcher : pixie.matching Matcher, optional
+        When given, features of every encoded image (all rolls) are extracted and stored.
+    progress : callable(done, total), optional
+        Called after each view with (views done, total views).
+    workers : int
+        Processes that render and encode in parallel (views are independent); features are
+        extracted in this process while the workers render the next views.
+    """
+    cfg = config or RefsConfig()
+    encs = check_encodings(cfg.encodings)
+    t0 = time.perf_counter()
+    S = int(cfg.size)
+    K0 = start_K(S, cfg.focal_factor)
+    dist = camera_distance(mesh.bounding_radius, K0[0, 0], S, fill=1.0 / cfg.crop_pad)
+    base = view_poses(mesh.center, dist, cfg.n_fibonacci, cfg.canonical)
+    V, R = len(base), max(int(cfg.rotations), 1)
+    poses = np.zeros((V, R, 4, 4))
+    Ks = np.zeros((V, R, 3, 3))
+    depth = np.zeros((V, S, S), np.float32)
+    normals = np.zeros((V, S, S, 3), np.float32)
+    enc_store: dict[str, list] = {e: [] for e in encs}
+    feats: dict[str, list] = {e: [] for e in encs}
+    xyzs: dict[str, list] = {e: [] for e in encs}
+    for i, view in enumerate(_iter_rendered_views(mesh, cfg, base, K0, workers)):
+        poses[i], Ks[i] = view["poses"], view["Ks"]
+        depth[i], normals[i] = view["depth"][0], view["normals0"]
+        for e in encs:
+            imgs = view["enc"][e]
+            enc_store[e].append(imgs if cfg.store_rotated_encodings else imgs[0])
+            if matcher is None:
+                continue
+            for j in range(R):
+                f = matcher.extract(imgs[j], mask=view["depth"][j] > 0)
+                feats[e].append(f)
+                xyzs[e].append(keypoint_xyz_from_depth(view["depth"][j], Ks[i, j], poses[i, j], f.keypoints))
+        if progress:
+            progress(i + 1, V)
+    refs = ReferenceSet(
+        mesh=mesh, config=cfg, poses=poses, Ks=Ks, K_start=K0,
+        canonical=np.arange(V) < (6 if cfg.canonical else 0),
+        depth=depth, normals=normals,
+        encodings={e: np.stack(v) for e, v in enc_store.items()},
+    )
+    if matcher is not None:
+        _store_features(refs, matcher.name, feats, xyzs)
+    refs.build_seconds = time.perf_counter() - t0
+    return refs
+
+
+def _store_features(refs: ReferenceSet, matcher_name: str, feats: dict, xyzs: dict) -> None:
+    from pixie.matching import pack_features
+
+    for e in feats:
+        packed = pack_features(feats[e])
+        packed["xyz"] = np.concatenate(xyzs[e]).astype(np.float32) if xyzs[e] else np.zeros((0, 3), np.float32)
+        refs.features[refs.feature_key(matcher_name, e)] = packed
+
+
+_WORKER_STATE: dict = {}
+
+
+def _render_view(mesh: Mesh, cfg: RefsConfig, T_base: np.ndarray, K0: np.ndarray,
+                 renderer: Renderer | None = None) -> dict:
+    """Render and encode every roll of one view (runs in a worker process)."""
+    renderer = renderer or Renderer(mesh, smooth_normals=cfg.smooth_normals)
+    S, R = int(cfg.size), max(int(cfg.rotations), 1)
+    out = {"poses": np.zeros((R, 4, 4)), "Ks": np.zeros((R, 3, 3)), "depth": np.zeros((R, S, S), np.float32),
+           "enc": {e: [] for e in cfg.encodings}}
+    for j, a in enumerate(roll_angles(R)):
+        T = roll(T_base, a)
+        K, box = square_crop_K(K0, T, mesh.vertices, S, cfg.crop_pad)
+        # Rays only inside the box of the projected vertices (= the silhouette's box).
+        pad = (box[2] - box[2] / cfg.crop_pad) / 2 * box[3]
+        lo, hi = int(np.floor(pad)) - 2, int(np.ceil(S - pad)) + 2
+        r = renderer.render(T, K, S, S, roi=(max(lo, 0), max(lo, 0), min(hi, S), min(hi, S)))
+        out["poses"][j], out["Ks"][j], out["depth"][j] = T, K, r.depth
+        if j == 0:
+            out["normals0"] = r.normals
+        for e in cfg.encodings:
+            out["enc"][e].append(encode(e, r.depth, r.normals, r.mask))
+    out["enc"] = {e: np.stack(v) for e, v in out["enc"].items()}
+    return out
+
+
+def _worker_init(mesh: Mesh, cfg: RefsConfig, K0: np.ndarray) -> None:
+    _WORKER_STATE.update(mesh=mesh, cfg=cfg, K0=K0, renderer=Renderer(mesh, smooth_normals=cfg.smooth_normals))
+
+
+def _worker_render(T_base: np.ndarray) -> dict:
+    st = _WORKER_STATE
+    return _render_view(st["mesh"], st["cfg"], T_base, st["K0"], st["renderer"])
+
+
+def _iter_rendered_views(mesh: Mesh, cfg: RefsConfig, base: np.ndarray, K0: np.ndarray, workers: int):
+    """Yield the rendered views in order, from ``workers`` processes (or inline for 1)."""
+    if workers <= 1:
+        renderer = Renderer(mesh, smooth_normals=cfg.smooth_normals)
+        for T in base:
+            yield _render_view(mesh, cfg, T, K0, renderer)
+        return
+    import multiprocessing as mp
+    from concurrent.futures import ProcessPoolExecutor
+
+    ctx = mp.get_context("fork")
+    with ProcessPoolExecutor(workers, mp_context=ctx, initializer=_worker_init, initargs=(mesh, cfg, K0)) as ex:
+        yield from ex.map(_worker_render, list(base), chunksize=1)
+
+
+def keypoint_xyz_from_depth(depth: np.ndarray, K: np.ndarray, T_cam_from_obj: np.ndarray,
+                            keypoints: np.ndarray) -> np.ndarray:
+    """Object-space point under each keypoint's nearest pixel (back-projected depth); NaN on background."""
+    h, w = depth.shape
+    if len(keypoints) == 0:
+        return np.zeros((0, 3), np.float32)
+    c = np.clip(np.rint(keypoints[:, 0]).astype(int), 0, w - 1)
+    r = np.clip(np.rint(keypoints[:, 1]).astype(int), 0, h - 1)
+    z = depth[r, c].astype(np.float64)
+    X = transform_points(invert_T(T_cam_from_obj), backproject(K, np.stack([c, r], 1).astype(np.float64), z))
+    X[z <= 0] = np.nan
+    return X.astype(np.float32)
+
+
+def add_features(refs: ReferenceSet, matcher, encodings: list[str] | None = None,
+                 progress: Callable[[int, int], None] | None = None, workers: int = 1) -> None:
+    """Extract (and store in ``refs``) features of ``matcher`` for encodings not yet present.
+
+    Rotated references are re-rendered from the stored poses (never resampled).
+    """
+    encs = [e for e in (encodings or refs.config.encodings) if refs.feature_key(matcher.name, e) not in refs.features]
+    if not encs:
+        return
+    cfg = RefsConfig(**{**refs.config.__dict__, "encodings": encs})
+    feats: dict[str, list] = {e: [] for e in encs}
+    xyzs: dict[str, list] = {e: [] for e in encs}
+    for i, view in enumerate(_iter_rendered_views(refs.mesh, cfg, refs.poses[:, 0], refs.K_start, workers)):
+        for e in encs:
+            for j in range(refs.n_rolls):
+                f = matcher.extract(view["enc"][e][j], mask=view["depth"][j] > 0)
+                feats[e].append(f)
+                xyzs[e].append(keypoint_xyz_from_depth(view["depth"][j], view["Ks"][j], view["poses"][j], f.keypoints))
+        if progress:
+            progress(i + 1, refs.n_views)
+    _store_features(refs, matcher.name, feats, xyzs)
+
+
+# ----------------------------------------------------------------------------------------- I/O
+
+
+def save_reference_set(refs: ReferenceSet, path: str | Path) -> Path:
+    """Write ``refs`` to ``path`` (.npz) atomically: a killed write leaves no partial file."""
+    path = Path(path)
+    if path.suffix != ".npz":
+        path = path.with_suffix(".npz")
+    parent = path.parent if str(path.parent) else Path(".")
+    try:
+        parent.mkdir(parents=True, exist_ok=True)
+    except OSError as exc:
+        raise ReferenceSetError(f"cannot create output folder {parent}: {exc}") from exc
+    if not os.access(parent, os.W_OK):
+        raise ReferenceSetError(f"output folder {parent} is not writable")
+    meta = {
+        "format_version": FORMAT_VERSION,
+        "pixie_version": __version__,
+        "mesh_name": refs.mesh.name,
+        "mesh_hash": refs.mesh.source_hash,
+        "config": refs.config.__dict__,
+        "build_seconds": refs.build_seconds,
+        "encodings": list(refs.encodings),
+        "features": sorted(refs.features),
+    }
+    arrays = {
+        "meta": np.frombuffer(json.dumps(meta).encode(), np.uint8),
+        "poses": refs.poses, "Ks": refs.Ks, "K_start": refs.K_start, "canonical": refs.canonical,
+        **_quantise_depth(refs.depth),
+        "normals_q": np.round(refs.normals * 127.0).astype(np.int8),
+        "mesh_vertices": refs.mesh.vertices, "mesh_faces": refs.mesh.faces.astype(np.int32),
+    }
+    if refs.config.store_rotated_encodings:  # roll-0 encodings are re-derived from D and N on load
+        for name, img in refs.encodings.items():
+            arrays[f"enc/{name}"] = img
+    for key, packed in refs.features.items():
+        for k, v in packed.items():
+            arrays[f"feat/{key}/{k}"] = v
+    fd, tmp = tempfile.mkstemp(prefix=f".{path.stem}.", suffix=".npz.tmp", dir=parent)
+    os.close(fd)
+    try:
+        with open(tmp, "wb") as fh:  # a file object: numpy would otherwise append '.npz' to the name
+            np.savez_compressed(fh, **arrays)
+            fh.flush()
+            os.fsync(fh.fileno())
+        os.replace(tmp, path)
+    except BaseException:
+        Path(tmp).unlink(missing_ok=True)
+        raise
+    return path
+
+
+def load_reference_set(path: str | Path, mesh: Mesh | None = None) -> ReferenceSet:
+    """Read a reference set; with ``mesh`` given, refuse a set built from another mesh file."""
+    path = Path(path)
+    if not path.is_file():
+        raise ReferenceSetError(f"reference set not found: {path} (build it with `pixie refs build MESH -o {path}`)")
+    try:
+        with np.load(path, allow_pickle=False) as z:
+            data = {k: z[k] for k in z.files}
+    except (zipfile.BadZipFile, ValueError, OSError, EOFError) as exc:
+        raise ReferenceSetError(f"reference set {path} is corrupt or not a pixie file: {exc}") from exc
+    if "meta" not in data:
+        raise ReferenceSetError(f"{path} is not a pixie reference set (no metadata)")
+    try:
+        meta = json.loads(data["meta"].tobytes().decode())
+    except ValueError as exc:
+        raise ReferenceSetError(f"{path}: unreadable metadata") from exc
+    if meta.get("format_version") != FORMAT_VERSION:
+        raise ReferenceSetError(
+            f"{path} has format version {meta.get('format_version')}, this pixie reads {FORMAT_VERSION}: rebuild it"
+        )
+    if mesh is not None and mesh.source_hash != meta["mesh_hash"]:
+        raise ReferenceSetError(f"{path} was built from another mesh ({meta['mesh_name']}, hash differs): rebuild it")
+    try:
+        stored_mesh = from_arrays(data["mesh_vertices"], data["mesh_faces"], name=meta["mesh_name"])
+        stored_mesh.source_hash = meta["mesh_hash"]
+        cfg = RefsConfig(**meta["config"])
+        feats: dict[str, dict[str, np.ndarray]] = {}
+        for k, v in data.items():
+            if k.startswith("feat/"):
+                key, _, field_name = k[5:].rpartition("/")
+                feats.setdefault(key, {})[field_name] = v
+        return ReferenceSet(
+            mesh=mesh or stored_mesh, config=cfg, poses=data["poses"], Ks=data["Ks"], K_start=data["K_start"],
+            canonical=data["canonical"], depth=_dequantise_depth(data),
+            normals=_unit(data["normals_q"].astype(np.float32) / 127.0),
+            encodings={k[4:]: v for k, v in data.items() if k.startswith("enc/")},
+            features=feats, build_seconds=float(meta.get("build_seconds", 0.0)),
+        )
+    except (KeyError, TypeError) as exc:
+        raise ReferenceSetError(f"{path} is missing data ({exc}): rebuild it") from exc
+
+
+def _quantise_depth(depth: np.ndarray) -> dict[str, np.ndarray]:
+    """Depth as uint16 steps between each view's near and far z (0 = background); error < 0.01 mm."""
+    mask = depth > 0
+    lo = np.where(mask.any((1, 2)), np.where(mask, depth, np.inf).min((1, 2)), 0).astype(np.float64)
+    hi = np.where(mask.any((1, 2)), depth.max((1, 2)), 1).astype(np.float64)
+    step = np.maximum(hi - lo, 1e-6) / 65534.0
+    q = np.round((depth - lo[:, None, None]) / step[:, None, None]) + 1
+    return {"depth_q": np.where(mask, q, 0).astype(np.uint16), "depth_lo": lo, "depth_step": step}
+
+
+def _dequantise_depth(data: dict) -> np.ndarray:
+    q = data["depth_q"].astype(np.float64)
+    d = data["depth_lo"][:, None, None] + (q - 1) * data["depth_step"][:, None, None]
+    return np.where(q > 0, d, 0).astype(np.float32)
+
+
+def _unit(n: np.ndarray) -> np.ndarray:
+    norm = np.linalg.norm(n, axis=-1, keepdims=True)
+    return np.where(norm > 0, n / np.maximum(norm, 1e-12), 0).astype(np.float32)
+
+
+def encoding_images(refs: ReferenceSet, name: str) -> np.ndarray:
+    """Roll-0 images (V, S, S[, 3]) of one encoding, derived from the stored D and N when not stored."""
+    if name not in refs.encodings:
+        imgs = [encode(name, refs.depth[i], refs.normals[i], refs.depth[i] > 0) for i in range(refs.n_views)]
+        refs.encodings[name] = np.stack(imgs)
+    imgs = refs.encodings[name]
+    return imgs[:, 0] if imgs.ndim >= 4 and imgs.shape[1] == refs.n_rolls and refs.config.store_rotated_encodings else imgs
