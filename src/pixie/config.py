@@ -30,6 +30,7 @@ class RefsConfig:
     encodings: list[str] = field(default_factory=lambda: ["shade3_edges", "depth", "normal"])
     smooth_normals: bool = True
     store_rotated_encodings: bool = False  # keep the 8-bit images of every rotation (large); roll 0 always kept
+    feature_rolls: str = "all"  # extract matcher features of 'all' rolls, or 'first' only (enough for match.in_plane=query)
 
 
 @dataclass

@@ -99,6 +99,11 @@ class ReferenceSet:
     def has_features(self, matcher: str, encodings: list[str]) -> bool:
         return all(self.feature_key(matcher, e) in self.features for e in encodings)
 
+    def feature_rolls(self, matcher: str, encoding: str) -> int:
+        """How many rolls per view have stored features (all rolls, or 1 when only roll 0 was extracted)."""
+        n = len(self.features[self.feature_key(matcher, encoding)]["feat_image_sizes"])
+        return self.n_rolls if n == self.n_views * self.n_rolls else 1
+
 
 def build_reference_set(
     mesh: Mesh,
@@ -144,7 +149,7 @@ def build_reference_set(
             enc_store[e].append(imgs if cfg.store_rotated_encodings else imgs[0])
             if matcher is None:
                 continue
-            for j in range(R):
+            for j in range(R if cfg.feature_rolls == "all" else 1):
                 f = matcher.extract(imgs[j], mask=view["depth"][j] > 0)
                 feats[e].append(f)
                 xyzs[e].append(keypoint_xyz_from_depth(view["depth"][j], Ks[i, j], poses[i, j], f.keypoints))
@@ -249,7 +254,7 @@ def add_features(refs: ReferenceSet, matcher, encodings: list[str] | None = None
     xyzs: dict[str, list] = {e: [] for e in encs}
     for i, view in enumerate(_iter_rendered_views(refs.mesh, cfg, refs.poses[:, 0], refs.K_start, workers)):
         for e in encs:
-            for j in range(refs.n_rolls):
+            for j in range(refs.n_rolls if refs.config.feature_rolls == "all" else 1):
                 f = matcher.extract(view["enc"][e][j], mask=view["depth"][j] > 0)
                 feats[e].append(f)
                 xyzs[e].append(keypoint_xyz_from_depth(view["depth"][j], view["Ks"][j], view["poses"][j], f.keypoints))

@@ -1,0 +1,270 @@
+"""The pose pipeline in one place: crop → match → lift → PnP → score → view selection.
+
+>>> refs = load_reference_set("ape.npz")
+>>> est = PoseEstimator(refs, PixieConfig())
+>>> result = est.estimate(image, K, bbox=(x, y, w, h))
+>>> result.T_cam_from_obj, result.score, result.failed
+"""
+
+from __future__ import annotations
+
+import logging
+import time
+from dataclasses import dataclass, field
+
+import numpy as np
+
+from pixie.camera import check_image_K, optical_axis_in_object, rotation_angle_deg
+from pixie.config import PixieConfig
+from pixie.errors import ConfigError, ReferenceSetError
+from pixie.pose import PnPResult, box_iou, depth_from_box, lift, projected_box, solve_pnp_ransac
+from pixie.query import QueryCrop, bbox_from_mask, check_bbox, check_query_image, square_crop
+from pixie.references import ReferenceSet, add_features
+from pixie.views import roll_angles
+
+log = logging.getLogger(__name__)
+
+
+@dataclass
+class Hypothesis:
+    """One candidate pose: from reference (view, roll), with its PnP support."""
+
+    T_cam_from_obj: np.ndarray
+    score: float
+    n_inliers: int
+    n_matches: int
+    view: int
+    roll: int
+    rot_to_ref_deg: float
+    box_iou: float
+
+
+@dataclass
+class PoseResult:
+    """What :meth:`PoseEstimator.estimate` returns. ``failed`` results still carry the best guess."""
+
+    T_cam_from_obj: np.ndarray | None
+    score: float
+    n_inliers: int
+    failed: bool
+    message: str
+    view: int = -1
+    roll: int = -1
+    confidence: float = 0.0
+    hypotheses: list[Hypothesis] = field(default_factory=list)
+    timings: dict[str, float] = field(default_factory=dict)
+
+    def to_dict(self) -> dict:
+        return {
+            "T_cam_from_obj": None if self.T_cam_from_obj is None else self.T_cam_from_obj.tolist(),
+            "score": self.score, "n_inliers": self.n_inliers, "failed": self.failed, "message": self.message,
+            "view": self.view, "roll": self.roll, "confidence": self.confidence, "timings": self.timings,
+            "hypotheses": [
+                {"T_cam_from_obj": h.T_cam_from_obj.tolist(), "score": h.score, "n_inliers": h.n_inliers,
+                 "view": h.view, "roll": h.roll} for h in self.hypotheses
+            ],
+        }
+
+
+class PoseEstimator:
+    """Estimate ``T_cam_from_obj`` of the reference set's object in RGB photos.
+
+    Parameters
+    ----------
+    refs : ReferenceSet
+    config : PixieConfig
+    matcher : pixie.matching.Matcher, optional
+        Built from ``config.match`` when omitted. Reference features missing for this matcher are
+        extracted once here (slow; store them with ``pixie refs build --matcher``).
+    """
+
+    def __init__(self, refs: ReferenceSet, config: PixieConfig | None = None, matcher=None):
+        from pixie.matching import get_matcher, unpack_features
+
+        self.refs = refs
+        self.cfg = config or PixieConfig()
+        m = self.cfg.match
+        if m.in_plane not in ("reference", "query"):
+            raise ConfigError(f"match.in_plane must be 'reference' or 'query', got {m.in_plane!r}")
+        window = None if m.window is None else m.window * refs.size
+        self.matcher = matcher or get_matcher(
+            m.matcher, device=m.device, weights=m.weights_dir, max_keypoints=m.max_keypoints,
+            **({"window": window} if m.matcher.endswith("-nn") else {}),
+        )
+        self.encodings = [e for e in self.cfg.refs.encodings if e in refs.config.encodings] or refs.config.encodings
+        if not refs.has_features(self.matcher.name, self.encodings):
+            log.warning("reference set has no %s features for %s: extracting them now", self.matcher.name, self.encodings)
+            add_features(refs, self.matcher, self.encodings)
+        R = min(refs.feature_rolls(self.matcher.name, e) for e in self.encodings)
+        if R == 1 and m.in_plane == "reference" and refs.n_rolls > 1:
+            log.info("reference features exist for roll 0 only: rotating the query instead")
+            self.cfg.match.in_plane = "query"
+        self._rolls = list(range(R)) if self.cfg.match.in_plane == "reference" else [0]
+        self._banks, self._xyz = {}, {}
+        for e in self.encodings:
+            packed = refs.features[refs.feature_key(self.matcher.name, e)]
+            feats = unpack_features(packed)
+            Re = refs.feature_rolls(self.matcher.name, e)
+            offs = np.cumsum([0] + [len(f) for f in feats])
+            xyz = [packed["xyz"][offs[k]:offs[k + 1]] for k in range(len(feats))]
+            keep = [v * Re + r for v in range(refs.n_views) for r in self._rolls]
+            self._banks[e] = self.matcher.prepare_refs([feats[k] for k in keep])
+            self._xyz[e] = [xyz[k] for k in keep]
+        self._pairs = [(v, r) for v in range(refs.n_views) for r in self._rolls]
+        self._pair_index = {p: i for i, p in enumerate(self._pairs)}
+        self._axes = np.stack([optical_axis_in_object(T) for T in refs.poses[:, 0]])
+        self._box_points = refs.mesh.vertices[:: max(1, len(refs.mesh.vertices) // 2000)]
+
+    # ------------------------------------------------------------------------------------------------
+    def estimate(self, image: np.ndarray, K: np.ndarray, bbox=None, mask: np.ndarray | None = None) -> PoseResult:
+        """Pose of the object in ``image`` (RGB uint8) with intrinsics ``K``; crop from ``bbox`` (x, y, w, h) or ``mask``."""
+        t_all = time.perf_counter()
+        timings: dict[str, float] = {}
+        image = check_query_image(image)
+        K = check_image_K(K, image.shape[:2])
+        if bbox is None:
+            bbox = bbox_from_mask(mask) if mask is not None else np.array([0, 0, image.shape[1], image.shape[0]])
+        box = check_bbox(bbox, image.shape[:2])
+        use_mask = mask if (mask is not None and self.cfg.query.mask_keypoints) else None
+
+        t = time.perf_counter()
+        crops = self._crops(image, box, use_mask)
+        qfeats = [self.matcher.extract(c.image, mask=c.mask) for c in crops]
+        timings["extract"] = time.perf_counter() - t
+
+        t = time.perf_counter()
+        corr = self._match_all(crops, qfeats, pairs=None)
+        timings["match"] = time.perf_counter() - t
+
+        t = time.perf_counter()
+        hyps = self._solve(corr, K, box)
+        timings["pnp"] = time.perf_counter() - t
+
+        t = time.perf_counter()
+        hyps = self._view_selection(hyps, crops, qfeats, K, box)
+        timings["view_selection"] = time.perf_counter() - t
+        timings["total"] = time.perf_counter() - t_all
+        return self._result(hyps, box, K, timings)
+
+    # ------------------------------------------------------------------------------------------------
+    def _crops(self, image: np.ndarray, box: np.ndarray, mask: np.ndarray | None) -> list[QueryCrop]:
+        q, S = self.cfg.query, self.refs.size
+        if self.cfg.match.in_plane == "reference":
+            return [square_crop(image, box, q.crop_pad, S, 0.0, mask)]
+        return [square_crop(image, box, q.crop_pad, S, a, mask) for a in roll_angles(self.refs.n_rolls)]
+
+    def _match_all(self, crops, qfeats, pairs: list[tuple[int, int]] | None) -> dict:
+        """2D (original image px) – 3D correspondences per (view, roll), all encodings concatenated."""
+        out: dict[tuple[int, int], tuple[np.ndarray, np.ndarray]] = {}
+        for e in self.encodings:
+            bank = self._banks[e]
+            if pairs is None:
+                idx = list(range(len(self._pairs)))
+            else:
+                idx = [self._pair_index[(v, r if self.cfg.match.in_plane == "reference" else 0)] for v, r in pairs]
+            sub = bank if pairs is None else self.matcher.prepare_refs([bank.features[i] for i in idx])
+            for ci, (crop, qf) in enumerate(zip(crops, qfeats)):
+                matches = self.matcher.match_many(qf, sub)
+                for k, m in zip(idx, matches):
+                    v, r = self._pairs[k]
+                    if self.cfg.match.in_plane == "query":
+                        r = ci
+                    if pairs is not None and (v, r) not in pairs:
+                        continue
+                    p2, p3 = lift(qf.keypoints, self._xyz[e][k], m.idx_q, m.idx_r)
+                    if len(p2) == 0:
+                        continue
+                    p2 = crop.to_original(p2)
+                    if (v, r) in out:
+                        a2, a3 = out[(v, r)]
+                        out[(v, r)] = (np.concatenate([a2, p2]), np.concatenate([a3, p3]))
+                    else:
+                        out[(v, r)] = (p2, p3)
+        return out
+
+    def _solve(self, corr: dict, K: np.ndarray, box: np.ndarray) -> list[Hypothesis]:
+        p = self.cfg.pose
+        ranked = sorted(corr.items(), key=lambda kv: -len(kv[1][0]))
+        if p.views == "canonical":
+            ranked = [kv for kv in ranked if self.refs.canonical[kv[0][0]]]
+        # One candidate per view (its best roll), the top_k views by match count.
+        seen, cands = set(), []
+        for (v, r), c in ranked:
+            if v in seen:
+                continue
+            seen.add(v)
+            cands.append(((v, r), c))
+            if len(cands) >= p.top_k_views:
+                break
+        if p.mode == "concat" and cands:
+            p2 = np.concatenate([c[0] for _, c in cands])
+            p3 = np.concatenate([c[1] for _, c in cands])
+            cands = [(cands[0][0], (p2, p3))]
+        elif p.mode != "per_view":
+            raise ConfigError(f"pose.mode must be 'per_view' or 'concat', got {p.mode!r}")
+        hyps = []
+        for (v, r), (p2, p3) in cands:
+            res = solve_pnp_ransac(p2, p3, K, p.ransac_iterations, p.reprojection_px, p.confidence, p.min_inliers, p.solver)
+            h = self._hypothesis(res, v, r, K, box)
+            if h is not None:
+                hyps.append(h)
+        return sorted(hyps, key=lambda h: -h.score)
+
+    def _hypothesis(self, res: PnPResult, v: int, r: int, K: np.ndarray, box: np.ndarray) -> Hypothesis | None:
+        if not res.ok:
+            return None
+        T = res.T_cam_from_obj
+        rot = rotation_angle_deg(T[:3, :3], self.refs.poses[v, r][:3, :3])
+        iou = box_iou(projected_box(T, K, self._box_points), box)
+        if self.cfg.pose.depth_from_bbox:
+            T = depth_from_box(T, K, self._box_points, box)
+        if self.cfg.pose.scoring == "inliers":
+            score = float(res.n_inliers)
+        elif self.cfg.pose.scoring == "combined":
+            # Matching only works between similar viewpoints: penalise solutions far from the
+            # reference view they came from (flips), and solutions whose box disagrees with the crop.
+            score = res.n_inliers * float(np.exp(-((rot / 35.0) ** 2))) * (0.25 + 0.75 * iou)
+        else:
+            raise ConfigError(f"pose.scoring must be 'inliers' or 'combined', got {self.cfg.pose.scoring!r}")
+        return Hypothesis(T, score, res.n_inliers, res.n_correspondences, v, r, rot, iou)
+
+    def _nearest_view(self, T: np.ndarray) -> tuple[int, int]:
+        """The paper's view selection: the view whose optical axis is closest, and its closest roll."""
+        v = int(np.argmax(self._axes @ optical_axis_in_object(T)))
+        r = int(np.argmin([rotation_angle_deg(T[:3, :3], P[:3, :3]) for P in self.refs.poses[v]]))
+        return v, r
+
+    def _view_selection(self, hyps, crops, qfeats, K, box) -> list[Hypothesis]:
+        if not hyps:
+            return hyps
+        best = hyps[0]
+        tried = {(best.view, best.roll)}
+        for _ in range(self.cfg.refine.view_selection_iters):
+            v, r = self._nearest_view(best.T_cam_from_obj)
+            if (v, r) in tried:
+                break  # the selected view repeats: converged
+            tried.add((v, r))
+            corr = self._match_all(crops, qfeats, pairs=[(v, r)])
+            new = self._solve(corr, K, box)
+            hyps = sorted(hyps + new, key=lambda h: -h.score)
+            if not new:
+                break
+            best = hyps[0]
+        return hyps
+
+    def _result(self, hyps: list[Hypothesis], box, K, timings) -> PoseResult:
+        if not hyps:
+            return PoseResult(None, 0.0, 0, True, "no pose: too few 2D-3D matches survived PnP+RANSAC", timings=timings)
+        best = hyps[0]
+        distinct: list[Hypothesis] = []
+        for h in hyps:
+            if all(rotation_angle_deg(h.T_cam_from_obj[:3, :3], d.T_cam_from_obj[:3, :3]) > 10 for d in distinct):
+                distinct.append(h)
+            if len(distinct) >= self.cfg.refine.n_hypotheses:
+                break
+        second = distinct[1].score if len(distinct) > 1 else 0.0
+        confidence = float(best.score / (best.score + second)) if best.score > 0 else 0.0
+        failed = best.n_inliers < max(self.cfg.pose.min_inliers, 1) or best.score <= 0
+        msg = "ok" if not failed else "low support"
+        return PoseResult(best.T_cam_from_obj, best.score, best.n_inliers, failed, msg, best.view, best.roll,
+                          confidence, distinct, timings)
