@@ -1,0 +1,1 @@
+"""Synthetic data: procedural parts, photo-like renders, labelled query/reference pairs."""
