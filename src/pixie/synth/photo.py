@@ -248,6 +248,7 @@ def render_rgb(
     lights: LightRig | None = None,
     shadows: bool = True,
     gamma: float = 2.2,
+    renders: list[RenderResult] | None = None,
 ) -> PhotoResult:
     """Render a shaded RGB photo of several posed objects.
 
@@ -263,6 +264,8 @@ def render_rgb(
     shadows : cast shadow rays (objects shadow themselves and each other; the background is an
         image and receives none).
     gamma : encoding gamma of the output (linear shading -> display values).
+    renders : precomputed ``renderers[i].render(poses[i], K, height, width)`` results (optional,
+        saves the geometry pass when the caller already has it).
     """
     if not (len(renderers) == len(poses) == len(materials)):
         raise ValueError(f"need one pose and material per renderer: {len(renderers)}, {len(poses)}, {len(materials)}")
@@ -276,7 +279,10 @@ def render_rgb(
     if lights is None:
         lights = LightRig.random(rng)
 
-    renders = [r.render(T, K, height, width) for r, T in zip(renderers, poses)]
+    if renders is None:
+        renders = [r.render(T, K, height, width) for r, T in zip(renderers, poses)]
+    elif len(renders) != len(renderers):
+        raise ValueError(f"need one render per renderer: {len(renders)} != {len(renderers)}")
     if renders:
         depth, owner = composite(renders)
     else:
