@@ -101,6 +101,39 @@ class Pair:
         return uv.astype(np.float32), valid
 
 
+    def correspond_ref(self, kp_r: np.ndarray, tol: float | None = None) -> tuple[np.ndarray, np.ndarray]:
+        """Query-crop pixel (x, y) of each reference keypoint, and whether it is a valid correspondence.
+
+        Valid: the keypoint's nearest reference pixel is on the part, its surface point projects into the
+        query crop onto a pixel that shows the target with (nearly) the same object XYZ (within ``tol`` mm,
+        default 1.5 % of the diameter: the point is not occluded in the query).
+        """
+        from pixie.camera import backproject, invert_T
+
+        kp_r = np.asarray(kp_r, np.float64).reshape(-1, 2)
+        H, W = self.ref_depth.shape
+        ix = np.clip(np.rint(kp_r[:, 0]).astype(int), 0, W - 1)
+        iy = np.clip(np.rint(kp_r[:, 1]).astype(int), 0, H - 1)
+        z = self.ref_depth[iy, ix].astype(np.float64)
+        Xc = backproject(self.ref_K, np.stack([ix, iy], 1).astype(np.float64), z)
+        Ti = invert_T(self.ref_T)
+        X = Xc @ Ti[:3, :3].T + Ti[:3, 3]
+        Xq = X @ self.query_T[:3, :3].T + self.query_T[:3, 3]
+        zq = np.maximum(Xq[:, 2], 1e-6)
+        uv = np.stack([self.query_K[0, 0] * Xq[:, 0] / zq + self.query_K[0, 2],
+                       self.query_K[1, 1] * Xq[:, 1] / zq + self.query_K[1, 2]], 1)
+        S = self.query_owner.shape[0]
+        qx, qy = np.rint(uv[:, 0]).astype(int), np.rint(uv[:, 1]).astype(int)
+        inside = (qx >= 0) & (qx < S) & (qy >= 0) & (qy < S) & (z > 0)
+        valid = np.zeros(len(kp_r), bool)
+        tol = 0.015 * self.mesh.diameter if tol is None else tol
+        qi = np.flatnonzero(inside)
+        on = self.query_owner[qy[qi], qx[qi]] == 0
+        dist = np.linalg.norm(self.query_xyz[qy[qi], qx[qi]] - X[qi], axis=1)
+        valid[qi] = on & (dist < tol)
+        return uv.astype(np.float32), valid
+
+
 def _random_rotation(rng: np.random.Generator) -> np.ndarray:
     q = rng.standard_normal(4)
     q /= np.linalg.norm(q)

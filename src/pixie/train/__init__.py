@@ -1,0 +1,1 @@
+"""Training code (never run by `make test`): fine-tuning matchers on synthetic pairs."""
