@@ -186,14 +186,19 @@ def _render_view(mesh: Mesh, cfg: RefsConfig, T_base: np.ndarray, K0: np.ndarray
     S, R = int(cfg.size), max(int(cfg.rotations), 1)
     out = {"poses": np.zeros((R, 4, 4)), "Ks": np.zeros((R, 3, 3)), "depth": np.zeros((R, S, S), np.float32),
            "enc": {e: [] for e in cfg.encodings}}
+    # Rolls other than 0 are rendered only when their features or images are kept.
+    render_all = cfg.feature_rolls == "all" or cfg.store_rotated_encodings
     for j, a in enumerate(roll_angles(R)):
         T = roll(T_base, a)
         K, box = square_crop_K(K0, T, mesh.vertices, S, cfg.crop_pad)
+        out["poses"][j], out["Ks"][j] = T, K
+        if j > 0 and not render_all:
+            continue
         # Rays only inside the box of the projected vertices (= the silhouette's box).
         pad = (box[2] - box[2] / cfg.crop_pad) / 2 * box[3]
         lo, hi = int(np.floor(pad)) - 2, int(np.ceil(S - pad)) + 2
         r = renderer.render(T, K, S, S, roi=(max(lo, 0), max(lo, 0), min(hi, S), min(hi, S)))
-        out["poses"][j], out["Ks"][j], out["depth"][j] = T, K, r.depth
+        out["depth"][j] = r.depth
         if j == 0:
             out["normals0"] = r.normals
         for e in cfg.encodings:
@@ -266,18 +271,27 @@ def add_features(refs: ReferenceSet, matcher, encodings: list[str] | None = None
 # ----------------------------------------------------------------------------------------- I/O
 
 
-def save_reference_set(refs: ReferenceSet, path: str | Path) -> Path:
-    """Write ``refs`` to ``path`` (.npz) atomically: a killed write leaves no partial file."""
+def check_output_path(path: str | Path) -> Path:
+    """The ``.npz`` path a set will be written to; its folder is created and must be writable."""
     path = Path(path)
     if path.suffix != ".npz":
         path = path.with_suffix(".npz")
-    parent = path.parent if str(path.parent) else Path(".")
+    parent = path.parent
     try:
         parent.mkdir(parents=True, exist_ok=True)
     except OSError as exc:
         raise ReferenceSetError(f"cannot create output folder {parent}: {exc}") from exc
     if not os.access(parent, os.W_OK):
         raise ReferenceSetError(f"output folder {parent} is not writable")
+    if path.is_dir():
+        raise ReferenceSetError(f"output {path} is a folder")
+    return path
+
+
+def save_reference_set(refs: ReferenceSet, path: str | Path) -> Path:
+    """Write ``refs`` to ``path`` (.npz) atomically: a killed write leaves no partial file."""
+    path = check_output_path(path)
+    parent = path.parent
     meta = {
         "format_version": FORMAT_VERSION,
         "pixie_version": __version__,

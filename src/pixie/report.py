@@ -15,12 +15,11 @@ from typing import TYPE_CHECKING
 
 import numpy as np
 
+from pixie.viz import EST_COLOR, GT_COLOR, draw_contours
+
 if TYPE_CHECKING:  # pragma: no cover
     from pixie.datasets import BopDataset
     from pixie.eval import ObjectData, Scores, TargetResult
-
-GT_COLOR = (0, 200, 0)  # RGB
-EST_COLOR = (230, 40, 40)
 
 
 def png_base64(rgb: np.ndarray) -> str:
@@ -78,16 +77,6 @@ def error_histograms(scores: "Scores", diameters: dict[int, float]) -> list[tupl
         ax.set_ylabel("targets")
         ax.set_title(f"{title}: n={len(vals)}" + (f", {n_missing} without estimate" if n_missing else ""), fontsize=9)
         out.append((title, _fig_base64(fig)))
-    return out
-
-
-def draw_contours(rgb: np.ndarray, mask: np.ndarray, color: tuple[int, int, int], thickness: int = 2) -> np.ndarray:
-    """Draw the outer contours of a boolean mask on a copy of an RGB image."""
-    import cv2
-
-    out = rgb.copy()
-    contours, _ = cv2.findContours(mask.astype(np.uint8), cv2.RETR_EXTERNAL, cv2.CHAIN_APPROX_NONE)
-    cv2.drawContours(out, contours, -1, color, thickness, lineType=cv2.LINE_AA)
     return out
 
 

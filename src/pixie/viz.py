@@ -1,0 +1,92 @@
+"""Pictures for people: reference contact sheets, pose overlays, match drawings."""
+
+from __future__ import annotations
+
+from pathlib import Path
+
+import cv2
+import numpy as np
+
+from pixie.references import ReferenceSet, encoding_images
+from pixie.render import Renderer
+
+EST_COLOR = (255, 40, 40)
+GT_COLOR = (40, 220, 40)
+
+
+def _rgb(img: np.ndarray) -> np.ndarray:
+    return np.repeat(img[..., None], 3, axis=2) if img.ndim == 2 else img
+
+
+def draw_contours(rgb: np.ndarray, mask: np.ndarray, color: tuple[int, int, int], thickness: int = 2) -> np.ndarray:
+    """Draw the outer contours of a boolean mask on a copy of an RGB image."""
+    out = rgb.copy()
+    contours, _ = cv2.findContours(mask.astype(np.uint8), cv2.RETR_EXTERNAL, cv2.CHAIN_APPROX_NONE)
+    cv2.drawContours(out, contours, -1, color, thickness, lineType=cv2.LINE_AA)
+    return out
+
+
+def contact_sheet(refs: ReferenceSet, encodings: list[str] | None = None, views: list[int] | None = None,
+                  tile: int = 128, columns: int = 11) -> np.ndarray:
+    """A grid of roll-0 reference images: one block of rows per encoding, labelled with the view index."""
+    encodings = encodings or list(refs.config.encodings)
+    views = views if views is not None else list(range(refs.n_views))
+    blocks = []
+    for e in encodings:
+        imgs = encoding_images(refs, e)
+        tiles = []
+        for v in views:
+            t = cv2.resize(_rgb(imgs[v]), (tile, tile), interpolation=cv2.INTER_AREA)
+            cv2.putText(t, f"{v}", (3, 12), cv2.FONT_HERSHEY_SIMPLEX, 0.4, (255, 255, 0), 1, cv2.LINE_AA)
+            tiles.append(t)
+        while len(tiles) % columns:
+            tiles.append(np.zeros_like(tiles[0]))
+        rows = [np.concatenate(tiles[i:i + columns], axis=1) for i in range(0, len(tiles), columns)]
+        header = np.zeros((22, rows[0].shape[1], 3), np.uint8)
+        cv2.putText(header, f"{refs.mesh.name}: {e}", (4, 16), cv2.FONT_HERSHEY_SIMPLEX, 0.5, (255, 255, 255), 1, cv2.LINE_AA)
+        blocks.append(np.concatenate([header, *rows], axis=0))
+    return np.concatenate(blocks, axis=0)
+
+
+def overlay_pose(image: np.ndarray, renderer: Renderer, T_est: np.ndarray | None, K: np.ndarray,
+                 T_gt: np.ndarray | None = None, shade_alpha: float = 0.35) -> np.ndarray:
+    """The model drawn at the estimate (shaded, red contour) and optionally at GT (green contour)."""
+    from pixie.encode import shade
+
+    h, w = image.shape[:2]
+    out = _rgb(image).copy()
+    if T_est is not None:
+        r = renderer.render(T_est, K, h, w)
+        s = shade(r.normals, r.mask, 3)
+        tint = np.stack([s, (s * 0.5).astype(np.uint8), (s * 0.5).astype(np.uint8)], axis=-1)
+        out[r.mask] = ((1 - shade_alpha) * out[r.mask] + shade_alpha * tint[r.mask]).astype(np.uint8)
+        out = draw_contours(out, r.mask, EST_COLOR)
+    if T_gt is not None:
+        out = draw_contours(out, renderer.render(T_gt, K, h, w).mask, GT_COLOR)
+    return out
+
+
+def draw_matches(img_q: np.ndarray, img_r: np.ndarray, kq: np.ndarray, kr: np.ndarray,
+                 inliers: np.ndarray | None = None, max_lines: int = 200) -> np.ndarray:
+    """Side-by-side query / reference with match lines (green inliers, red others)."""
+    a, b = _rgb(img_q), _rgb(img_r)
+    h = max(a.shape[0], b.shape[0])
+    canvas = np.zeros((h, a.shape[1] + b.shape[1], 3), np.uint8)
+    canvas[: a.shape[0], : a.shape[1]] = a
+    canvas[: b.shape[0], a.shape[1]:] = b
+    inl = np.zeros(len(kq), bool) if inliers is None else np.isin(np.arange(len(kq)), inliers)
+    step = max(1, len(kq) // max_lines)
+    for i in range(0, len(kq), step):
+        p = tuple(int(round(x)) for x in kq[i])
+        q = (int(round(kr[i][0])) + a.shape[1], int(round(kr[i][1])))
+        cv2.line(canvas, p, q, (40, 220, 40) if inl[i] else (220, 40, 40), 1, cv2.LINE_AA)
+    return canvas
+
+
+def save_png(path: str | Path, rgb: np.ndarray) -> Path:
+    """Write an RGB (or grey) image as PNG, creating the folder."""
+    path = Path(path)
+    path.parent.mkdir(parents=True, exist_ok=True)
+    if not cv2.imwrite(str(path), _rgb(rgb)[..., ::-1]):
+        raise OSError(f"cannot write image {path}")
+    return path
