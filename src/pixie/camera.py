@@ -143,7 +143,7 @@ def look_at(eye: np.ndarray, target: np.ndarray, up: np.ndarray) -> np.ndarray:
     z /= np.linalg.norm(z)
     if abs(np.dot(z, up / np.linalg.norm(up))) > 0.999:  # up parallel to the view: pick another
         up = np.array([1.0, 0.0, 0.0]) if abs(z[0]) < 0.9 else np.array([0.0, 1.0, 0.0])
-    x = np.cross(z, -up)
+    x = np.cross(z, up)
     x /= np.linalg.norm(x)
     y = np.cross(z, x)
     R_obj_from_cam = np.stack([x, y, z], axis=1)
