@@ -47,6 +47,7 @@ class MatchConfig:
 
     matcher: str = "aliked-nn"
     max_keypoints: int = 1024
+    detection_threshold: float | None = 0.0  # <= 0: keep the max_keypoints strongest (ALIKED's own 0.2 leaves ~10-100 on LM-O crops); None: backend default
     window: float | None = 0.125  # spatial window for NN matchers, fraction of refs.size (64 px at 512)
     in_plane: str = "reference"  # 'reference': rotated references (features precomputed); 'query': rotate the query crop
     weights_dir: str | None = None
@@ -58,7 +59,8 @@ class PoseConfig:
     """Step 4: lifting and PnP + RANSAC."""
 
     ransac_iterations: int = 1000
-    reprojection_px: float = 5.0  # in original-image pixels
+    reprojection_px: float = 5.0  # RANSAC inlier threshold, in the pixels named by threshold_space
+    threshold_space: str = "image"  # 'image': original-image px; 'crop': px of the size x size query crop (scales with the object)
     confidence: float = 0.9999
     min_inliers: int = 6
     solver: str = "opencv"  # 'opencv' (EPnP+RANSAC, LM refinement) or 'poselib'
@@ -74,6 +76,7 @@ class RefineConfig:
     """Step 5: iterative view selection (the paper's), optional extras."""
 
     view_selection_iters: int = 1
+    recrop: bool = False  # view selection re-crops the query around the best pose's projected (amodal) box, like the references
     n_hypotheses: int = 5
 
 

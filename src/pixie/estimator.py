@@ -84,12 +84,15 @@ class PoseEstimator:
         self.refs = refs
         self.cfg = config or PixieConfig()
         m = self.cfg.match
+        if self.cfg.pose.threshold_space not in ("image", "crop"):
+            raise ConfigError(f"pose.threshold_space must be 'image' or 'crop', got {self.cfg.pose.threshold_space!r}")
         if m.in_plane not in ("reference", "query"):
             raise ConfigError(f"match.in_plane must be 'reference' or 'query', got {m.in_plane!r}")
         window = None if m.window is None else m.window * refs.size
         self.matcher = matcher or get_matcher(
             m.matcher, device=m.device, weights=m.weights_dir, max_keypoints=m.max_keypoints,
             **({"window": window} if m.matcher.endswith("-nn") else {}),
+            **({"detection_threshold": m.detection_threshold} if m.detection_threshold is not None else {}),
         )
         self.encodings = [e for e in self.cfg.refs.encodings if e in refs.config.encodings] or refs.config.encodings
         if not refs.has_features(self.matcher.name, self.encodings):
@@ -137,11 +140,11 @@ class PoseEstimator:
         timings["match"] = time.perf_counter() - t
 
         t = time.perf_counter()
-        hyps = self._solve(corr, K, box)
+        hyps = self._solve(corr, K, box, self._px_scale(crops[0]))
         timings["pnp"] = time.perf_counter() - t
 
         t = time.perf_counter()
-        hyps = self._view_selection(hyps, crops, qfeats, K, box)
+        hyps = self._view_selection(hyps, crops, qfeats, K, box, image, use_mask)
         timings["view_selection"] = time.perf_counter() - t
         timings["total"] = time.perf_counter() - t_all
         return self._result(hyps, box, K, timings)
@@ -152,6 +155,12 @@ class PoseEstimator:
         if self.cfg.match.in_plane == "reference":
             return [square_crop(image, box, q.crop_pad, S, 0.0, mask)]
         return [square_crop(image, box, q.crop_pad, S, a, mask) for a in roll_angles(self.refs.n_rolls)]
+
+    def _px_scale(self, crop: QueryCrop) -> float:
+        """Original-image pixels per threshold pixel (1 in 'image' space, side/size in 'crop' space)."""
+        if self.cfg.pose.threshold_space == "crop":
+            return float(np.hypot(crop.A[0, 0], crop.A[1, 0]))
+        return 1.0
 
     def _match_all(self, crops, qfeats, pairs: list[tuple[int, int]] | None) -> dict:
         """2D (original image px) – 3D correspondences per (view, roll), all encodings concatenated."""
@@ -182,8 +191,9 @@ class PoseEstimator:
                         out[(v, r)] = (p2, p3)
         return out
 
-    def _solve(self, corr: dict, K: np.ndarray, box: np.ndarray) -> list[Hypothesis]:
+    def _solve(self, corr: dict, K: np.ndarray, box: np.ndarray, px_scale: float = 1.0) -> list[Hypothesis]:
         p = self.cfg.pose
+        thr = p.reprojection_px * px_scale
         ranked = sorted(corr.items(), key=lambda kv: -len(kv[1][0]))
         if p.views == "canonical":
             ranked = [kv for kv in ranked if self.refs.canonical[kv[0][0]]]
@@ -204,7 +214,7 @@ class PoseEstimator:
             raise ConfigError(f"pose.mode must be 'per_view' or 'concat', got {p.mode!r}")
         hyps = []
         for (v, r), (p2, p3) in cands:
-            res = solve_pnp_ransac(p2, p3, K, p.ransac_iterations, p.reprojection_px, p.confidence, p.min_inliers, p.solver)
+            res = solve_pnp_ransac(p2, p3, K, p.ransac_iterations, thr, p.confidence, p.min_inliers, p.solver)
             h = self._hypothesis(res, v, r, K, box)
             if h is not None:
                 hyps.append(h)
@@ -234,23 +244,58 @@ class PoseEstimator:
         r = int(np.argmin([rotation_angle_deg(T[:3, :3], P[:3, :3]) for P in self.refs.poses[v]]))
         return v, r
 
-    def _view_selection(self, hyps, crops, qfeats, K, box) -> list[Hypothesis]:
+    def _view_selection(self, hyps, crops, qfeats, K, box, image=None, mask=None) -> list[Hypothesis]:
         if not hyps:
             return hyps
         best = hyps[0]
         tried = {(best.view, best.roll)}
+        scale = self._px_scale(crops[0])
         for _ in range(self.cfg.refine.view_selection_iters):
             v, r = self._nearest_view(best.T_cam_from_obj)
             if (v, r) in tried:
                 break  # the selected view repeats: converged
             tried.add((v, r))
             corr = self._match_all(crops, qfeats, pairs=[(v, r)])
-            new = self._solve(corr, K, box)
+            new = self._solve(corr, K, box, scale)
             hyps = sorted(hyps + new, key=lambda h: -h.score)
             if not new:
                 break
             best = hyps[0]
+        if self.cfg.refine.recrop and image is not None:
+            hyps = self._recrop(hyps, image, K, box, mask)
         return hyps
+
+    def _recrop(self, hyps, image, K, box, mask) -> list[Hypothesis]:
+        """Crop the query again around the best pose's projected box (the references' crop convention:
+        the full silhouette, not the visible part) and match it against the best pose's nearest view."""
+        best = hyps[0]
+        pb = projected_box(best.T_cam_from_obj, K, self._box_points)
+        h, w = image.shape[:2]
+        if not np.all(np.isfinite(pb)) or pb[2] - pb[0] < 2 or pb[3] - pb[1] < 2:
+            return hyps
+        # Keep the crop near the given box: a wild pose must not move the crop off the object.
+        if box_iou(pb, box) < 0.3:
+            return hyps
+        v, r = self._nearest_view(best.T_cam_from_obj)
+        q, S = self.cfg.query, self.refs.size
+        ref_roll = r if self.cfg.match.in_plane == "reference" else 0
+        angle = 0.0 if self.cfg.match.in_plane == "reference" else float(roll_angles(self.refs.n_rolls)[r])
+        crop = square_crop(image, pb, q.crop_pad, S, angle, mask)
+        qf = self.matcher.extract(crop.image, mask=crop.mask)
+        k = self._pair_index.get((v, ref_roll))
+        if k is None:
+            return hyps
+        p2s, p3s = [], []
+        for e in self.encodings:
+            m = self.matcher.match_many(qf, self.matcher.prepare_refs([self._banks[e].features[k]]))[0]
+            p2, p3 = lift(qf.keypoints, self._xyz[e][k], m.idx_q, m.idx_r)
+            if len(p2):
+                p2s.append(crop.to_original(p2))
+                p3s.append(p3)
+        if not p2s:
+            return hyps
+        new = self._solve({(v, r): (np.concatenate(p2s), np.concatenate(p3s))}, K, box, self._px_scale(crop))
+        return sorted(hyps + new, key=lambda h: -h.score)
 
     def _result(self, hyps: list[Hypothesis], box, K, timings) -> PoseResult:
         if not hyps:

@@ -1,0 +1,501 @@
+"""End-to-end pixie benchmark on the LM-O dev subset (real photos, bbox_visib crops), plus an oracle mode.
+
+Usage::
+
+    nice .venv/bin/python bench/lmo_pipeline.py [--max-targets 48] [--set section.key=value ...] \
+        [--config NAME:section.key=value,section.key=value ...] [--oracle] [--out out/bench/lmo_pipeline]
+
+Every ``--config`` is run in turn (with the global ``--set`` overrides applied first); without any
+``--config`` the defaults (+ ``--set``) run as ``default``. Per configuration it
+
+* builds (or loads from ``out/bench/refs/<hash>/``) one reference set per object with
+  ``build_reference_set(mesh, cfg.refs, matcher=...)``; the hash covers ``cfg.refs`` and the matcher's
+  extraction settings, so configurations that only differ in matching/pose settings share references;
+* runs ``PoseEstimator.estimate(image, K, bbox=bbox_visib)`` per target and appends one JSON line per
+  target to ``<out>/runs/<run hash>/targets.jsonl`` (resumable: finished targets are skipped);
+* writes ``<out>/runs/<run hash>/results.csv`` (BOP'19 format) and ``<out>/<NAME>.json``, and prints a table.
+
+Metrics: ADD(-S)<0.1d (ADD-S for the symmetric objects 10 and 11, BOP evaluation models), median
+rotation / translation error, AR (no VSD) = mean(AR_MSSD, AR_MSPD) from :func:`pixie.eval.evaluate`,
+seconds per target with the estimator's stage breakdown, and the reference build time.
+
+Oracle mode (``--oracle``): for each target one reference is rendered at the ground-truth view (same
+object-centred square-crop convention as the reference sets, the GT rotation turned so that the object
+centre lies on the optical axis, like a query crop) and the query is matched against it alone. It measures
+the matcher/encoding across the real-photo/render gap independent of retrieval: raw matches, *correct*
+matches (reference XYZ projected with the GT pose within 5 crop pixels of the query keypoint), PnP
+inliers and ADD(-S)<0.1d of the estimator run on that single reference. Reuse it from other code with
+:func:`oracle_target` / :func:`run_oracle`.
+"""
+
+from __future__ import annotations
+
+import argparse
+import copy
+import hashlib
+import json
+import math
+import os
+import sys
+import time
+from dataclasses import dataclass, field
+from pathlib import Path
+
+import numpy as np
+
+REPO = Path(__file__).resolve().parents[1]
+sys.path.insert(0, str(REPO / "src"))
+
+from pixie import metrics as M  # noqa: E402
+from pixie.config import PixieConfig  # noqa: E402
+from pixie.datasets import BopDataset, PoseEstimate, Target, write_results_csv  # noqa: E402
+
+DEFAULT_DATASET = REPO.parent / "shared/data/lmo_dev/lmo"
+DEFAULT_OUT = REPO / "out/bench/lmo_pipeline"
+REFS_CACHE = REPO / "out/bench/refs"
+CORRECT_PX = 5.0  # crop pixels: a match is correct when the GT projection of its 3D point is this close
+
+
+# ------------------------------------------------------------------------------------------ helpers
+
+
+def make_config(overrides: list[str]) -> PixieConfig:
+    return PixieConfig().apply_overrides(overrides)
+
+
+def parse_config_arg(text: str) -> tuple[str, list[str]]:
+    """``NAME:a.b=1,c.d=x`` -> ("NAME", ["a.b=1", "c.d=x"]). Lists inside [] keep their commas."""
+    name, _, rest = text.partition(":")
+    items, depth, cur = [], 0, ""
+    for ch in rest:
+        depth += ch == "["
+        depth -= ch == "]"
+        if ch == "," and depth == 0:
+            items.append(cur)
+            cur = ""
+        else:
+            cur += ch
+    if cur:
+        items.append(cur)
+    return name, [i.strip() for i in items if i.strip()]
+
+
+def _hash(obj) -> str:
+    return hashlib.sha1(json.dumps(obj, sort_keys=True, default=str).encode()).hexdigest()[:12]
+
+
+def make_matcher(cfg: PixieConfig, size: int):
+    from pixie.matching import get_matcher
+
+    m = cfg.match
+    window = None if m.window is None else m.window * size
+    return get_matcher(m.matcher, device=m.device, weights=m.weights_dir, max_keypoints=m.max_keypoints,
+                       **({"window": window} if m.matcher.endswith("-nn") else {}),
+                       **({"detection_threshold": m.detection_threshold} if m.detection_threshold is not None else {}))
+
+
+def refs_key(cfg: PixieConfig) -> str:
+    m = cfg.match
+    return _hash({"refs": cfg.refs.__dict__, "matcher": m.matcher, "max_kp": m.max_keypoints, "w": m.weights_dir,
+                  "det": m.detection_threshold})
+
+
+def select_targets(ds: BopDataset, max_targets: int | None, objects: list[int] | None = None) -> list[Target]:
+    """All targets, or ``max_targets`` spread evenly over the objects (evenly spaced within each object)."""
+    tg = [t for t in ds.targets() if objects is None or t.obj_id in objects]
+    if not max_targets or max_targets >= len(tg):
+        return tg
+    by_obj: dict[int, list[Target]] = {}
+    for t in tg:
+        by_obj.setdefault(t.obj_id, []).append(t)
+    per = max(1, math.ceil(max_targets / len(by_obj)))
+    out = []
+    for oid in sorted(by_obj):
+        lst = by_obj[oid]
+        idx = np.unique(np.linspace(0, len(lst) - 1, min(per, len(lst))).round().astype(int))
+        out += [lst[i] for i in idx]
+    return sorted(out, key=lambda t: (t.scene_id, t.im_id, t.obj_id))
+
+
+def gt_instance(ds: BopDataset, t: Target):
+    """The most visible GT instance of the target's object (LM-O has one per object)."""
+    insts = [g for g in ds.instances(t.scene_id, t.im_id) if g.obj_id == t.obj_id]
+    return max(insts, key=lambda g: g.visib_fract or 0.0)
+
+
+class ObjectCache:
+    """Per object: model mesh (mm), eval data (diameter, ADD points, symmetry), reference sets per key."""
+
+    def __init__(self, ds: BopDataset):
+        self.ds = ds
+        self._mesh, self._eval, self._refs, self._renderer = {}, {}, {}, {}
+        self.build_seconds: dict[tuple[str, int], float] = {}
+        self.refs_bytes: dict[tuple[str, int], int] = {}
+
+    def mesh(self, oid: int):
+        from pixie.mesh import load_mesh
+
+        if oid not in self._mesh:
+            self._mesh[oid] = load_mesh(self.ds.model_path(oid), units="mm")
+        return self._mesh[oid]
+
+    def eval_data(self, oid: int):
+        from pixie.eval import load_object_data
+
+        if oid not in self._eval:
+            self._eval[oid] = load_object_data(self.ds, oid, n_points=2000)
+        return self._eval[oid]
+
+    def renderer(self, oid: int, smooth: bool = True):
+        from pixie.render import Renderer
+
+        if (oid, smooth) not in self._renderer:
+            self._renderer[(oid, smooth)] = Renderer(self.mesh(oid), smooth_normals=smooth)
+        return self._renderer[(oid, smooth)]
+
+    def refs(self, cfg: PixieConfig, oid: int, matcher, log=print):
+        from pixie.references import build_reference_set, load_reference_set, save_reference_set
+
+        key = refs_key(cfg)
+        if (key, oid) in self._refs:
+            return self._refs[(key, oid)]
+        path = REFS_CACHE / key / f"obj_{oid:06d}.npz"
+        mesh = self.mesh(oid)
+        if path.is_file():
+            refs = load_reference_set(path, mesh)
+        else:
+            t0 = time.perf_counter()
+            log(f"  building references for obj {oid} ({key}) ...")
+            refs = build_reference_set(mesh, cfg.refs, matcher=matcher)
+            path.parent.mkdir(parents=True, exist_ok=True)
+            save_reference_set(refs, path)
+            (path.parent / "config.json").write_text(json.dumps({"refs": cfg.refs.__dict__, "matcher": cfg.match.matcher,
+                                                                 "max_keypoints": cfg.match.max_keypoints}, indent=1))
+            log(f"  built obj {oid} in {time.perf_counter() - t0:.0f} s")
+        self.build_seconds[(key, oid)] = refs.build_seconds
+        self.refs_bytes[(key, oid)] = path.stat().st_size
+        self._refs = {k: v for k, v in self._refs.items() if k[0] == key}  # keep one config's sets in memory
+        self._refs[(key, oid)] = refs
+        return refs
+
+
+def pose_errors(od, T_est: np.ndarray | None, T_gt: np.ndarray) -> dict:
+    if T_est is None:
+        return {"add": None, "add_ok": False, "rot_err": None, "trans_err": None}
+    e = M.add_s(T_est, T_gt, od.add_pts, od.symmetric, od.tree)
+    rot = M.rotation_error_deg(T_est, T_gt)
+    if od.symmetric and len(od.syms):
+        rot = min(M.rotation_error_deg(T_est, T_gt @ S) for S in od.syms)
+    return {"add": e, "add_ok": bool(e < 0.1 * od.diameter), "rot_err": rot,
+            "trans_err": float(np.linalg.norm(T_est[:3, 3] - T_gt[:3, 3]))}
+
+
+# ------------------------------------------------------------------------------------------ oracle
+
+
+def oracle_reference(mesh, cfg: PixieConfig, T_gt: np.ndarray, matcher, renderer=None):
+    """A one-view :class:`ReferenceSet` rendered at the GT view, with ``matcher`` features.
+
+    The GT rotation is turned (about the camera centre) so that the object centre lies on the optical axis,
+    then rendered like a reference view: K_start focal, object-centred square crop of ``cfg.refs.size`` px.
+    """
+    from pixie.camera import make_T
+    from pixie.encode import encode
+    from pixie.references import ReferenceSet, _store_features, keypoint_xyz_from_depth
+    from pixie.render import Renderer
+    from pixie.views import camera_distance, square_crop_K, start_K
+
+    rc = cfg.refs
+    S = int(rc.size)
+    K0 = start_K(S, rc.focal_factor)
+    dist = camera_distance(mesh.bounding_radius, K0[0, 0], S, fill=1.0 / rc.crop_pad)
+    c = T_gt[:3, :3] @ mesh.center + T_gt[:3, 3]
+    a = c / np.linalg.norm(c)
+    z = np.array([0.0, 0.0, 1.0])
+    v, cos = np.cross(a, z), float(a @ z)
+    vx = np.array([[0, -v[2], v[1]], [v[2], 0, -v[0]], [-v[1], v[0], 0]])
+    Rc = np.eye(3) + vx + vx @ vx / (1.0 + cos)  # rotates a onto z
+    R = Rc @ T_gt[:3, :3]
+    T = make_T(R, np.array([0.0, 0.0, dist]) - R @ mesh.center)
+    K, _ = square_crop_K(K0, T, mesh.vertices, S, rc.crop_pad)
+    renderer = renderer or Renderer(mesh, smooth_normals=rc.smooth_normals)
+    r = renderer.render(T, K, S, S)
+    feats, xyzs, encs = {}, {}, {}
+    for e in rc.encodings:
+        img = encode(e, r.depth, r.normals, r.mask)
+        encs[e] = img[None]
+        f = matcher.extract(img, mask=r.mask)
+        feats[e] = [f]
+        xyzs[e] = [keypoint_xyz_from_depth(r.depth, K, T, f.keypoints)]
+    rc1 = copy.deepcopy(rc)
+    rc1.rotations, rc1.n_fibonacci, rc1.canonical = 1, 1, False
+    refs = ReferenceSet(mesh=mesh, config=rc1, poses=T[None, None], Ks=K[None, None], K_start=K0,
+                        canonical=np.zeros(1, bool), depth=r.depth[None].astype(np.float32),
+                        normals=r.normals[None].astype(np.float32), encodings=encs)
+    _store_features(refs, matcher.name, feats, xyzs)
+    return refs
+
+
+@dataclass
+class OracleResult:
+    n_matches: int = 0
+    n_correct: int = 0
+    n_inliers: int = 0
+    T_est: np.ndarray | None = None
+    per_encoding: dict = field(default_factory=dict)  # encoding -> (matches, correct)
+
+
+def oracle_target(image: np.ndarray, K: np.ndarray, bbox, T_gt: np.ndarray, mesh, cfg: PixieConfig, matcher,
+                  renderer=None) -> OracleResult:
+    """Match a query crop against one reference rendered at the GT view; count correct matches; run PnP.
+
+    ``bbox`` is (x, y, w, h) as given to :meth:`PoseEstimator.estimate`. Any matcher built by
+    :func:`pixie.matching.get_matcher` (or with the same interface) can be passed.
+    """
+    from pixie.camera import project, transform_points
+    from pixie.estimator import PoseEstimator
+    from pixie.pose import lift
+    from pixie.query import check_bbox, square_crop
+
+    cfg = copy.deepcopy(cfg)
+    cfg.match.in_plane = "reference"
+    refs = oracle_reference(mesh, cfg, T_gt, matcher, renderer)
+    est = PoseEstimator(refs, cfg, matcher=matcher)
+    res = est.estimate(image, K, bbox=bbox)
+    out = OracleResult(n_inliers=res.n_inliers, T_est=res.T_cam_from_obj)
+    box = check_bbox(bbox, image.shape[:2])
+    crop = square_crop(image, box, cfg.query.crop_pad, refs.size)
+    qf = matcher.extract(crop.image)
+    A = np.vstack([crop.A, [0, 0, 1]])
+    Ainv = np.linalg.inv(A)[:2]
+    for e in est.encodings:
+        rf = est._banks[e].features[0]
+        m = matcher.match(qf, rf)
+        p2, p3 = lift(qf.keypoints, est._xyz[e][0], m.idx_q, m.idx_r)
+        if len(p2):
+            uv = project(K, transform_points(T_gt, p3))
+            uvc = uv @ Ainv[:, :2].T + Ainv[:, 2]
+            nc = int(np.sum(np.linalg.norm(uvc - p2, axis=1) < CORRECT_PX))
+        else:
+            nc = 0
+        out.per_encoding[e] = (len(p2), nc)
+        out.n_matches += len(p2)
+        out.n_correct += nc
+    return out
+
+
+def run_oracle(ds: BopDataset, targets: list[Target], cfg: PixieConfig, matcher=None, crop: str = "visib",
+               objects: ObjectCache | None = None, progress=print) -> dict:
+    """Oracle mode over ``targets``; returns a summary dict (and per-target rows under 'targets')."""
+    objects = objects or ObjectCache(ds)
+    matcher = matcher or make_matcher(cfg, cfg.refs.size)
+    rows = []
+    t0 = time.perf_counter()
+    for i, t in enumerate(targets):
+        g = gt_instance(ds, t)
+        img = ds.load_rgb(t.scene_id, t.im_id)
+        K = ds.camera(t.scene_id, t.im_id).K
+        bbox = g.bbox_visib if crop == "visib" else g.bbox_obj
+        r = oracle_target(img, K, bbox, g.T_cam_from_obj, objects.mesh(t.obj_id), cfg, matcher,
+                          objects.renderer(t.obj_id, cfg.refs.smooth_normals))
+        err = pose_errors(objects.eval_data(t.obj_id), r.T_est, g.T_cam_from_obj)
+        rows.append({"im_id": t.im_id, "obj_id": t.obj_id, "visib": g.visib_fract, "matches": r.n_matches,
+                     "correct": r.n_correct, "inliers": r.n_inliers, "per_encoding": r.per_encoding, **err})
+        if progress and (i + 1) % 10 == 0:
+            progress(f"  oracle {i + 1}/{len(targets)}  {time.perf_counter() - t0:.0f} s")
+    n = max(len(rows), 1)
+    return {
+        "n_targets": len(rows),
+        "mean_matches": float(np.mean([r["matches"] for r in rows])) if rows else 0.0,
+        "mean_correct": float(np.mean([r["correct"] for r in rows])) if rows else 0.0,
+        "median_correct": float(np.median([r["correct"] for r in rows])) if rows else 0.0,
+        "mean_inliers": float(np.mean([r["inliers"] for r in rows])) if rows else 0.0,
+        "add_0.1d": sum(r["add_ok"] for r in rows) / n,
+        "median_rot_err": _median([r["rot_err"] for r in rows]),
+        "median_trans_err": _median([r["trans_err"] for r in rows]),
+        "seconds_per_target": (time.perf_counter() - t0) / n,
+        "targets": rows,
+    }
+
+
+def _median(vals):
+    v = [x if x is not None else float("inf") for x in vals]
+    return float(np.median(v)) if v else None
+
+
+# ------------------------------------------------------------------------------------------ pipeline
+
+
+def run_pipeline(ds: BopDataset, targets: list[Target], cfg: PixieConfig, name: str, out_dir: Path,
+                 crop: str = "visib", tag: str = "", objects: ObjectCache | None = None, ar: bool = True,
+                 progress=print) -> dict:
+    """Run the estimator on ``targets``; resumable through ``<out>/runs/<hash>/targets.jsonl``."""
+    from pixie.estimator import PoseEstimator
+
+    objects = objects or ObjectCache(ds)
+    run_hash = _hash({"cfg": cfg.to_dict(), "crop": crop, "tag": tag})
+    run_dir = out_dir / "runs" / run_hash
+    run_dir.mkdir(parents=True, exist_ok=True)
+    (run_dir / "config.json").write_text(json.dumps({"name": name, "cfg": cfg.to_dict(), "crop": crop, "tag": tag}, indent=1))
+    jl = run_dir / "targets.jsonl"
+    done = {}
+    if jl.is_file():
+        for line in jl.read_text().splitlines():
+            try:
+                d = json.loads(line)
+            except ValueError:
+                continue
+            done[(d["scene_id"], d["im_id"], d["obj_id"])] = d
+    todo = [t for t in targets if (t.scene_id, t.im_id, t.obj_id) not in done]
+    progress(f"[{name}] {len(targets)} targets, {len(targets) - len(todo)} cached, run {run_hash}")
+    matcher = None
+    by_obj: dict[int, list[Target]] = {}
+    for t in todo:
+        by_obj.setdefault(t.obj_id, []).append(t)
+    t_start = time.perf_counter()
+    n_run = 0
+    for oid in sorted(by_obj):
+        cfg_o = copy.deepcopy(cfg)
+        if matcher is None:
+            matcher = make_matcher(cfg_o, cfg_o.refs.size)
+        refs = objects.refs(cfg_o, oid, matcher, log=progress)
+        est = PoseEstimator(refs, cfg_o, matcher=matcher)
+        od = objects.eval_data(oid)
+        for t in by_obj[oid]:
+            g = gt_instance(ds, t)
+            img = ds.load_rgb(t.scene_id, t.im_id)
+            K = ds.camera(t.scene_id, t.im_id).K
+            bbox = g.bbox_visib if crop == "visib" else g.bbox_obj
+            t0 = time.perf_counter()
+            res = est.estimate(img, K, bbox=bbox)
+            dt = time.perf_counter() - t0
+            err = pose_errors(od, res.T_cam_from_obj, g.T_cam_from_obj)
+            rec = {"scene_id": t.scene_id, "im_id": t.im_id, "obj_id": t.obj_id, "visib": g.visib_fract,
+                   "T": None if res.T_cam_from_obj is None else res.T_cam_from_obj.tolist(), "score": res.score,
+                   "n_inliers": res.n_inliers, "failed": res.failed, "view": res.view, "roll": res.roll,
+                   "seconds": dt, "timings": res.timings, **err}
+            with jl.open("a") as fh:
+                fh.write(json.dumps(rec) + "\n")
+            done[(t.scene_id, t.im_id, t.obj_id)] = rec
+            n_run += 1
+            if n_run % 10 == 0:
+                ok = sum(done[k]["add_ok"] for k in done)
+                progress(f"  [{name}] {n_run}/{len(todo)}  {(time.perf_counter() - t_start) / n_run:.2f} s/target  "
+                         f"ADD<0.1d so far {ok}/{len(done)}")
+    recs = [done[(t.scene_id, t.im_id, t.obj_id)] for t in targets]
+    return summarise(ds, targets, recs, cfg, name, run_dir, objects, ar)
+
+
+def summarise(ds, targets, recs, cfg, name, run_dir, objects, ar=True) -> dict:
+    ests = [PoseEstimate(r["scene_id"], r["im_id"], r["obj_id"], float(r["score"]), np.array(r["T"]), r["seconds"])
+            for r in recs if r["T"] is not None]
+    write_results_csv(run_dir / "results.csv", ests)
+    n = max(len(recs), 1)
+    stages = {}
+    for r in recs:
+        for k, v in (r.get("timings") or {}).items():
+            stages.setdefault(k, []).append(v)
+    per_obj = {}
+    for r in recs:
+        per_obj.setdefault(r["obj_id"], []).append(r["add_ok"])
+    out = {
+        "name": name, "run": run_dir.name, "n_targets": len(recs),
+        "add_0.1d": sum(r["add_ok"] for r in recs) / n,
+        "add_0.1d_per_object": {str(k): float(np.mean(v)) for k, v in sorted(per_obj.items())},
+        "median_rot_err": _median([r["rot_err"] for r in recs]),
+        "median_trans_err": _median([r["trans_err"] for r in recs]),
+        "failed": sum(bool(r["failed"]) for r in recs),
+        "mean_inliers": float(np.mean([r["n_inliers"] for r in recs])) if recs else 0.0,
+        "seconds_per_target": float(np.mean([r["seconds"] for r in recs])) if recs else 0.0,
+        "stage_seconds": {k: float(np.mean(v)) for k, v in stages.items()},
+        "refs_key": refs_key(cfg),
+        "refs_build_seconds_per_object": _mean_or_none([v for (k, o), v in objects.build_seconds.items() if k == refs_key(cfg)]),
+        "refs_mb_per_object": _mean_or_none([v / 1e6 for (k, o), v in objects.refs_bytes.items() if k == refs_key(cfg)]),
+        "config": cfg.to_dict(),
+    }
+    if ar and ests:
+        from pixie.eval import evaluate
+
+        t0 = time.perf_counter()
+        sc = evaluate(ds, ests, metrics=["mssd", "mspd"], targets=targets, n_points=2000)
+        out["ar_no_vsd"] = sc.overall.get("AR_noVSD")
+        out["eval_seconds"] = time.perf_counter() - t0
+    return out
+
+
+def _mean_or_none(v):
+    return float(np.mean(v)) if v else None
+
+
+def format_table(rows: list[dict], oracle: bool = False) -> str:
+    if oracle:
+        head = f"{'config':<28}{'n':>5}{'matches':>9}{'correct':>9}{'inliers':>9}{'ADD<.1d':>9}{'rot°':>8}{'t mm':>8}{'s/tg':>7}"
+        lines = [head]
+        for r in rows:
+            lines.append(f"{r['name']:<28}{r['n_targets']:>5}{r['mean_matches']:>9.1f}{r['mean_correct']:>9.1f}"
+                         f"{r['mean_inliers']:>9.1f}{100 * r['add_0.1d']:>8.1f}%{r['median_rot_err']:>8.1f}"
+                         f"{r['median_trans_err']:>8.1f}{r['seconds_per_target']:>7.2f}")
+        return "\n".join(lines)
+    head = (f"{'config':<28}{'n':>5}{'ADD<.1d':>9}{'AR(noVSD)':>10}{'rot°':>8}{'t mm':>8}{'s/tg':>7}  stages (extract/match/pnp/vs)"
+            f"   refs s/obj, MB/obj")
+    lines = [head]
+    for r in rows:
+        st = r["stage_seconds"]
+        stages = "/".join(f"{st.get(k, 0):.2f}" for k in ("extract", "match", "pnp", "view_selection"))
+        ar = r.get("ar_no_vsd")
+        b = r.get("refs_build_seconds_per_object")
+        mb = r.get("refs_mb_per_object")
+        lines.append(f"{r['name']:<28}{r['n_targets']:>5}{100 * r['add_0.1d']:>8.1f}%"
+                     f"{(f'{ar:.3f}' if isinstance(ar, (int, float)) else '-'):>10}{r['median_rot_err']:>8.1f}"
+                     f"{r['median_trans_err']:>8.1f}{r['seconds_per_target']:>7.2f}  {stages:<24}"
+                     f"   {(f'{b:.0f}' if b else '-')}, {(f'{mb:.1f}' if mb else '-')}")
+    return "\n".join(lines)
+
+
+def main(argv: list[str] | None = None) -> int:
+    ap = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
+    ap.add_argument("--dataset", type=Path, default=DEFAULT_DATASET)
+    ap.add_argument("--out", type=Path, default=DEFAULT_OUT)
+    ap.add_argument("--max-targets", type=int, default=None, help="spread evenly over the objects")
+    ap.add_argument("--objects", type=str, default=None, help="comma-separated object ids (measuring only)")
+    ap.add_argument("--set", action="append", default=[], dest="overrides", help="section.key=value, for every config")
+    ap.add_argument("--config", action="append", default=[], help="NAME:section.key=value,section.key=value")
+    ap.add_argument("--oracle", action="store_true", help="match each target only against a GT-view reference")
+    ap.add_argument("--crop", choices=("visib", "obj"), default="visib", help="query box: bbox_visib (default) or bbox_obj")
+    ap.add_argument("--tag", default="", help="part of the run hash (bump it after changing the estimator code)")
+    ap.add_argument("--no-ar", action="store_true", help="skip AR (no VSD)")
+    ap.add_argument("--threads", type=int, default=None, help="torch threads")
+    args = ap.parse_args(argv)
+    if args.threads:
+        import torch
+
+        torch.set_num_threads(args.threads)
+    ds = BopDataset(args.dataset)
+    objs = [int(x) for x in args.objects.split(",")] if args.objects else None
+    targets = select_targets(ds, args.max_targets, objs)
+    configs = [parse_config_arg(c) for c in args.config] or [("default", [])]
+    objects = ObjectCache(ds)
+    args.out.mkdir(parents=True, exist_ok=True)
+    rows = []
+    for name, ov in configs:
+        cfg = make_config(args.overrides + ov)
+        if args.oracle:
+            t0 = time.perf_counter()
+            r = run_oracle(ds, targets, cfg, crop=args.crop, objects=objects)
+            r["name"] = name
+            r["config"] = cfg.to_dict()
+            print(f"[{name}] oracle done in {time.perf_counter() - t0:.0f} s")
+            (args.out / f"oracle_{name}.json").write_text(json.dumps(r, indent=1, default=float))
+        else:
+            r = run_pipeline(ds, targets, cfg, name, args.out, crop=args.crop, tag=args.tag, objects=objects,
+                             ar=not args.no_ar)
+            (args.out / f"{name}.json").write_text(json.dumps(r, indent=1, default=float))
+        rows.append(r)
+        print(format_table([r], oracle=args.oracle).splitlines()[1])
+    print()
+    print(format_table(rows, oracle=args.oracle))
+    return 0
+
+
+if __name__ == "__main__":
+    raise SystemExit(main())
