@@ -23,7 +23,7 @@ log = logging.getLogger(__name__)
 def refs_key(mesh: Mesh, cfg: PixieConfig) -> str:
     """Short hash of everything a reference set depends on: mesh bytes, refs config, matcher."""
     blob = json.dumps({"mesh": mesh.source_hash, "refs": cfg.to_dict()["refs"], "matcher": cfg.match.matcher,
-                       "kp": cfg.match.max_keypoints}, sort_keys=True)
+                       "kp": cfg.match.max_keypoints, "det": cfg.match.detection_threshold}, sort_keys=True)
     return hashlib.sha256(blob.encode()).hexdigest()[:12]
 
 
@@ -34,6 +34,8 @@ def make_matcher(cfg: PixieConfig, size: int | None = None):
     m = cfg.match
     size = size or cfg.refs.size
     opts = {"window": None if m.window is None else m.window * size} if m.matcher.endswith("-nn") else {}
+    if m.detection_threshold is not None:
+        opts["detection_threshold"] = m.detection_threshold
     return get_matcher(m.matcher, device=m.device, weights=m.weights_dir, max_keypoints=m.max_keypoints, **opts)
 
 
