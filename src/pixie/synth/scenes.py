@@ -38,7 +38,8 @@ import numpy as np
 
 from pixie.camera import look_at, make_K
 from pixie.mesh import Mesh, from_arrays
-from pixie.render import Renderer
+from pixie.metrics import aps, iou3d
+from pixie.render import Renderer, composite
 from pixie.synth.assemblies import (
     Assembly,
     brick_part,
@@ -136,7 +137,7 @@ class PhysicalVariant:
                     defect=self.assembly.defect)
 
 
-def _colours_for(asm: Assembly, target: Assembly, palettes: dict[str, np.ndarray], rng: np.random.Generator) -> list:
+def _colours_for(asm: Assembly, palettes: dict[str, np.ndarray], rng: np.random.Generator) -> list:
     out = []
     for p in asm.parts:
         if p.color_key not in palettes:
@@ -162,7 +163,7 @@ def build_variants(n_assemblies: int, n_defects: int, n_colour_variants: int, se
         palettes = []
         for c in range(n_colour_variants):
             pal: dict[str, np.ndarray] = {}
-            _colours_for(tgt, tgt, pal, crng)
+            _colours_for(tgt, pal, crng)
             palettes.append(pal)
         variants = [(0, tgt)] + [(k + 1, d) for k, d in enumerate(defects[a])]
         for k, asm in variants:
@@ -170,7 +171,7 @@ def build_variants(n_assemblies: int, n_defects: int, n_colour_variants: int, se
             mesh, pid = asm.to_mesh_with_part_ids()
             for c in colours:
                 out.append(PhysicalVariant(a, obj_id, k, obj_id if k == 0 else 100 * obj_id + k, c, asm, mesh, pid,
-                                           _colours_for(asm, tgt, palettes[c], crng)))
+                                           _colours_for(asm, palettes[c], crng)))
     return targets, defects, out
 
 
@@ -304,8 +305,6 @@ def _render_image(pv: PhysicalVariant, target_mesh: Mesh, renderers: dict, distr
         if n_full < 200:
             continue
         rens = [full] + [r.render(T, K, h, w) for r, T in objs[1:]]
-        from pixie.render import composite
-
         _, owner = composite(rens)
         vis = float((owner == 0).sum()) / n_full
         if vis >= min_visib:
@@ -440,8 +439,6 @@ def generate_defect_dataset(
                                  visib_fract=float(n_vis / n_all) if n_all else 0.0)]
             targets_json.append(dict(scene_id=s, im_id=im, obj_id=pv.obj_id, inst_count=1))
             # APS at the GT pose: target model vs the physical (possibly defective) model.
-            from pixie.metrics import aps
-
             if pv.obj_id not in aps_cache:
                 aps_cache[pv.obj_id] = Renderer(target_meshes[pv.obj_id])
             aps_vals.append(1.0 if not pv.is_defective else
@@ -460,8 +457,6 @@ def generate_defect_dataset(
     (out / "variants.json").write_text(json.dumps(all_variants, indent=1, default=_json_default))
 
     # IoU3D per physical model.
-    from pixie.metrics import iou3d
-
     ious = {}
     for a, tgt in enumerate(targets):
         for k, d in enumerate(defects[a], start=1):
@@ -548,3 +543,31 @@ def tiny_defect_dataset(out_dir: str | Path, seed: int = 0, images_per_variant: 
     return generate_defect_dataset(out_dir, n_assemblies=1, n_defects=1, n_colour_variants=1,
                                    images_per_variant=images_per_variant, seed=seed, width=width, height=height,
                                    n_distractors=(1, 2), voxel_size=2.0)
+
+
+def main(argv=None) -> int:
+    """``python -m pixie.synth.scenes OUT [--tiny] [--assemblies 3 --defects 3 --colours 3 --images 4 --seed 0]``"""
+    import argparse
+
+    ap = argparse.ArgumentParser(description="Generate the synthetic assembly-defects benchmark (BOP format).")
+    ap.add_argument("out", type=Path)
+    ap.add_argument("--tiny", action="store_true", help="the 2-scene 320x240 set of tests and demos")
+    ap.add_argument("--assemblies", type=int, default=3)
+    ap.add_argument("--defects", type=int, default=3)
+    ap.add_argument("--colours", type=int, default=3)
+    ap.add_argument("--images", type=int, default=4)
+    ap.add_argument("--seed", type=int, default=0)
+    ap.add_argument("--full-product", action="store_true", help="every defective variant in every colour")
+    args = ap.parse_args(argv)
+    if args.tiny:
+        res = tiny_defect_dataset(args.out, seed=args.seed)
+    else:
+        res = generate_defect_dataset(args.out, args.assemblies, args.defects, args.colours, args.images, args.seed,
+                                      full_product=args.full_product)
+    print(format_table1(res["table1"]))
+    print(f"{res['n_scenes']} scenes, {res['n_images']} images in {res['time_s']:.1f} s -> {args.out}")
+    return 0
+
+
+if __name__ == "__main__":
+    raise SystemExit(main())
