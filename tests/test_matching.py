@@ -182,6 +182,8 @@ def test_registry_and_options() -> None:
         get_matcher("no-such-matcher")
     with pytest.raises(ConfigError, match="window"):
         get_matcher("sift-nn", windw=3)
+    with pytest.raises(ConfigError, match="ALIKED model"):
+        get_matcher("aliked-nn", model="aliked-n99")
 
 
 def test_missing_weights_raise(tmp_path: Path, monkeypatch: pytest.MonkeyPatch) -> None:
@@ -320,6 +322,15 @@ def test_remap_lightglue_state() -> None:
                             "extractor.model.net.x": t, "cross_attn.10.to_v.bias": t}}
     assert set(remap_lightglue_state(state)) == {"transformers.3.self_attn.Wqkv.weight",
                                                  "transformers.10.cross_attn.to_v.bias"}
+
+
+def test_wrong_weight_files_raise(tmp_path: Path) -> None:
+    torch.save(SuperPointNet().state_dict(), tmp_path / "sp.pth")
+    with pytest.raises(WeightsError, match="does not fit"):
+        get_matcher("xfeat-nn", allow_download=False, weights=tmp_path / "sp.pth")  # another network
+    lg = build_lightglue("xfeat", None, torch.device("cpu")).state_dict()
+    with pytest.raises(WeightsError, match="does not fit"):
+        build_lightglue("superpoint", lg, torch.device("cpu"))  # same keys, other shapes
 
 
 def test_minima_loader_round_trip(tmp_path: Path, monkeypatch: pytest.MonkeyPatch) -> None:

@@ -420,16 +420,38 @@ def _kornia_feature() -> Any:
     return KF
 
 
-def _load_strict(module: nn.Module, state: Mapping[str, torch.Tensor], what: str, ignore: Sequence[str] = ()) -> None:
-    """Load ``state`` into ``module``; raise :class:`WeightsError` on any missing or unexpected learned key."""
-    result = module.load_state_dict(dict(state), strict=False)
+def _load_strict(
+    module: nn.Module, state: Mapping[str, torch.Tensor], what: str, ignore: Sequence[str] = ()
+) -> None:
+    """Load ``state`` into ``module``.
+
+    Raises
+    ------
+    WeightsError
+        When a learned entry is missing or has another shape (a file of another network). Entries the
+        network does not have are only warned about.
+    """
+    try:
+        result = module.load_state_dict(dict(state), strict=False)
+    except RuntimeError as exc:  # shape mismatches
+        first = (str(exc).splitlines() or [""])[0]
+        raise WeightsError(f"{what}: the weight file does not fit the network ({first} ...)") from exc
     missing = [k for k in result.missing_keys if k not in ignore]
-    if missing or result.unexpected_keys:
+    if missing:
         raise WeightsError(
-            f"{what}: the weight file does not fit the network "
-            f"(missing {missing[:5]}{'...' if len(missing) > 5 else ''}, "
-            f"unexpected {result.unexpected_keys[:5]}{'...' if len(result.unexpected_keys) > 5 else ''})"
+            f"{what}: the weight file does not fit the network: {len(missing)} entries missing "
+            f"({', '.join(missing[:5])}{', ...' if len(missing) > 5 else ''})"
         )
+    if result.unexpected_keys:
+        extra = result.unexpected_keys
+        warnings.warn(
+            f"{what}: ignoring {len(extra)} weight entries the network does not use "
+            f"({', '.join(extra[:5])}{', ...' if len(extra) > 5 else ''})",
+            stacklevel=3,
+        )
+
+
+ALIKED_MODELS = ("aliked-n16", "aliked-n16rot", "aliked-n32", "aliked-t16")
 
 
 class AlikedExtractor(Extractor):
@@ -452,6 +474,8 @@ class AlikedExtractor(Extractor):
         allow_download: bool = False,
     ) -> None:
         super().__init__(device)
+        if model not in ALIKED_MODELS:
+            raise ConfigError(f"unknown ALIKED model {model!r}; choose one of {', '.join(ALIKED_MODELS)}")
         KF = _kornia_feature()
         threshold = 0.2 if detection_threshold is None else float(detection_threshold)
         self.net = KF.ALIKED(model_name=model, max_num_keypoints=int(max_keypoints), detection_threshold=threshold)
@@ -1141,7 +1165,6 @@ _EXTRACTORS: dict[str, type[Extractor]] = {
 
 _NN_OPTIONS = ("window", "ratio", "min_similarity")
 _LG_OPTIONS = ("filter_threshold", "depth_confidence", "width_confidence", "flash")
-_EXTRACTOR_OPTIONS = ("max_keypoints", "detection_threshold", "model", "nms_radius", "border")
 
 
 def _split_options(name: str, options: dict[str, Any], allowed: Sequence[str]) -> dict[str, Any]:
