@@ -212,3 +212,13 @@ def test_tiny_dataset_is_deterministic(tiny, tmp_path):
     a = cv2.imread(str(root / "test/000002/rgb/000001.png"))
     b = cv2.imread(str(again / "test/000002/rgb/000001.png"))
     assert np.array_equal(a, b)
+
+
+def test_compound_defects_are_stronger(asm):
+    single = make_defects(asm, 4, seed=3)
+    double = make_defects(asm, 4, seed=3, compound=1.0)
+    assert all("+" in d.defect["type"] and len(d.defect["steps"]) == 2 for d in double)
+    m0 = asm.to_mesh()
+    iou1 = np.mean([metrics.iou3d(m0, d.to_mesh(), 1.5) for d in single])
+    iou2 = np.mean([metrics.iou3d(m0, d.to_mesh(), 1.5) for d in double])
+    assert iou2 < iou1

@@ -241,10 +241,12 @@ def apply_defect(asm: Assembly, kind: str, rng: np.random.Generator, part: int |
     return _OPS[kind](asm, rng, part)
 
 
-def make_defects(asm: Assembly, n: int, seed: int, types=DEFECT_TYPES) -> list[Assembly]:
+def make_defects(asm: Assembly, n: int, seed: int, types=DEFECT_TYPES, compound: float = 0.0) -> list[Assembly]:
     """``n`` defective variants of ``asm``, cycling through ``types`` (shuffled by ``seed``).
 
-    Variants whose mesh equals an earlier one (e.g. a symmetric part rotated) are redrawn.
+    With probability ``compound`` a variant gets a second defect of another type (stronger
+    deviations; its ``defect`` is ``{type: 'a+b', steps: [first, second]}``). Variants whose mesh
+    equals an earlier one (e.g. a symmetric part rotated) are redrawn.
     """
     rng = np.random.default_rng(seed)
     order = list(types)
@@ -257,6 +259,12 @@ def make_defects(asm: Assembly, n: int, seed: int, types=DEFECT_TYPES) -> list[A
         attempts += 1
         try:
             d = apply_defect(asm, kind, rng)
+            if compound > 0 and rng.random() < compound:
+                kind2 = [t for t in order if t != kind][int(rng.integers(len(order) - 1))]
+                first = d.defect
+                d = apply_defect(d, kind2, rng)
+                d.defect = dict(type=f"{kind}+{kind2}", part=first.get("part"), steps=[first, d.defect])
+                kind = f"{kind}+{kind2}"
         except ValueError:
             continue
         sig = _signature(d)
