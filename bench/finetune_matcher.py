@@ -42,10 +42,53 @@ def cmd_gen(args) -> int:
     torch.set_num_threads(args.threads)
     t0 = time.perf_counter()
     seeds = _seeds(args.seeds)
-    paths = build_cache(seeds, args.out, PairConfig(size=args.size), encodings_per_pair=args.encodings)
+    paths = build_cache(seeds, args.out, PairConfig(size=args.size), encodings_per_pair=args.encodings, grid=args.grid)
     dt = time.perf_counter() - t0
     print(json.dumps({"pairs": len(seeds), "files": len(paths), "seconds": round(dt, 1),
                       "pairs_per_s": round(len(seeds) / dt, 3)}))
+    return 0
+
+
+def cmd_train(args) -> int:
+    import torch
+
+    from pixie.train.finetune import TrainConfig, evaluate, load_cache, train
+
+    torch.set_num_threads(args.threads)
+    tr = sorted(Path(args.train).glob("pair_*.npz"))
+    va = sorted(Path(args.val).glob("pair_*.npz"))
+    if args.max_train:
+        tr = tr[: args.max_train]
+    train_data, val_data = load_cache(tr), load_cache(va)
+    print(f"train pairs {len(train_data)} (valid query anchors {sum(int(d['q_valid'].sum()) for d in train_data)}), "
+          f"val pairs {len(val_data)}", flush=True)
+    base = evaluate(None, val_data)
+    print("  off-the-shelf val: " + json.dumps({k: round(v, 4) for k, v in base.items()}), flush=True)
+    cfg = TrainConfig(steps=args.steps, hidden=args.hidden, layers=args.layers, lr=args.lr, batch_pairs=args.batch,
+                      eval_every=args.eval_every, ckpt_every=args.eval_every, threads=args.threads,
+                      weight_decay=args.wd)
+    model, hist = train(train_data, val_data, cfg, run_dir=args.run, log=lambda m: print(m, flush=True))
+    summary = {"train_pairs": len(train_data), "val_pairs": len(val_data), "config": cfg.__dict__,
+               "val_off_the_shelf": base, "history": hist,
+               "train_files": [p.name for p in tr], "val_files": [p.name for p in va]}
+    (Path(args.run) / "summary.json").write_text(json.dumps(summary, indent=1, default=float))
+    return 0
+
+
+def cmd_ship(args) -> int:
+    from pixie.adapter import DescriptorAdapter, shipped_adapter_path
+    from pixie.train.finetune import load_checkpoint, save_adapter
+
+    ck = load_checkpoint(Path(args.run) / "last.pt")
+    c = ck["config"]
+    model = DescriptorAdapter(128, c["hidden"], c["layers"])
+    model.load_state_dict(ck["model"])
+    summ = json.loads((Path(args.run) / "summary.json").read_text())
+    meta = {"steps": ck["step"], "train_pairs": summ["train_pairs"], "val_pairs": summ["val_pairs"],
+            "val_final": ck["history"][-1] if ck["history"] else None, "val_off_the_shelf": summ["val_off_the_shelf"],
+            "base": "aliked-n16 (Shiaoming/ALIKED weights), descriptors of kornia's ALIKED"}
+    path = save_adapter(model, args.to or shipped_adapter_path(), meta)
+    print(f"wrote {path} ({path.stat().st_size / 1024:.0f} KiB)")
     return 0
 
 
@@ -54,7 +97,7 @@ class CachedAliked:
     adapter is applied on top, so off-the-shelf and fine-tuned descriptors share the same keypoints and
     the fine-tuned run costs no second backbone pass."""
 
-    def __init__(self, cache_dir: Path, adapter=None, max_keypoints: int = 1024):
+    def __init__(self, cache_dir: Path, adapter=None, max_keypoints: int = 1024, grid: int = 0):
         import torch
 
         from pixie.matching import AlikedExtractor
@@ -64,6 +107,7 @@ class CachedAliked:
         self._inner = None
         self._mk = max_keypoints
         self.adapter = adapter
+        self.grid = int(grid)
         self.device = torch.device("cpu")
         self.dim = 128
         self._factory = lambda: AlikedExtractor(self.device, max_keypoints=self._mk, allow_download=False)
@@ -78,13 +122,23 @@ class CachedAliked:
         h = hashlib.sha1(np.ascontiguousarray(image).tobytes())
         h.update(b"none" if mask is None else np.packbits(np.asarray(mask, bool)).tobytes())
         h.update(str(image.shape).encode() + str(self._mk).encode())
+        if self.grid and mask is not None:
+            h.update(f"grid{self.grid}".encode())
         path = self.cache_dir / f"{h.hexdigest()}.npz"
         if path.is_file():
             with np.load(path) as z:
                 f = Features.from_arrays(z)
         else:
             self._inner = self._inner or self._factory()
-            f = self._inner(image, mask)
+            if self.grid and mask is not None:
+                from pixie.adapter import aliked_extract
+                from pixie.matching import check_image
+
+                img = check_image(image)
+                kp, desc, sc, _ = aliked_extract(self._inner.net, img, np.asarray(mask, bool), self.grid)
+                f = Features(kp, desc, sc, img.shape[:2])
+            else:
+                f = self._inner(image, mask)
             tmp = path.with_suffix(".tmp.npz")
             np.savez(tmp, **f.to_arrays())
             tmp.replace(path)
@@ -116,6 +170,10 @@ def oracle_matchers(names: list[str], window: float, cache_dir: Path, adapter_pa
         elif n == "aliked-ft-nn":
             out[n] = Matcher(n, CachedAliked(cache_dir, adapter=load_adapter(adapter_path)),
                              MutualNNAssigner(dev, window=window))
+        elif n.startswith("aliked-grid") or n.startswith("aliked-ft-grid"):  # e.g. aliked-grid6, aliked-ft-grid6
+            g = int(n.rsplit("grid", 1)[1])
+            ad = load_adapter(adapter_path) if n.startswith("aliked-ft") else None
+            out[n] = Matcher(n, CachedAliked(cache_dir, adapter=ad, grid=g), MutualNNAssigner(dev, window=window))
         else:
             raise SystemExit(f"unknown oracle matcher {n}")
     return out
@@ -177,6 +235,23 @@ def main(argv=None) -> int:
     g.add_argument("--size", type=int, default=512)
     g.add_argument("--encodings", type=int, default=1, help="reference encodings per pair")
     g.add_argument("--threads", type=int, default=1)
+    g.add_argument("--grid", type=int, default=6, help="reference grid stride (0: detections only)")
+    t = sub.add_parser("train", help="train the descriptor adapter on the cache")
+    t.add_argument("--train", type=Path, default=OUT / "cache" / "train")
+    t.add_argument("--val", type=Path, default=OUT / "cache" / "val")
+    t.add_argument("--run", type=Path, default=OUT / "run")
+    t.add_argument("--steps", type=int, default=2000)
+    t.add_argument("--hidden", type=int, default=256)
+    t.add_argument("--layers", type=int, default=2)
+    t.add_argument("--lr", type=float, default=1e-3)
+    t.add_argument("--wd", type=float, default=1e-4)
+    t.add_argument("--batch", type=int, default=4)
+    t.add_argument("--eval-every", type=int, default=200)
+    t.add_argument("--max-train", type=int, default=None)
+    t.add_argument("--threads", type=int, default=1)
+    sh = sub.add_parser("ship", help="copy the trained adapter into src/pixie/data/weights")
+    sh.add_argument("--run", type=Path, default=OUT / "run")
+    sh.add_argument("--to", type=Path, default=None)
     o = sub.add_parser("oracle", help="LM-O oracle comparison (bench/lmo_pipeline.run_oracle), same targets")
     o.add_argument("--max-targets", type=int, default=40)
     o.add_argument("--matchers", default="aliked-nn,aliked-ft-nn")
@@ -185,7 +260,7 @@ def main(argv=None) -> int:
     o.add_argument("--out", type=Path, default=OUT / "oracle")
     o.add_argument("--threads", type=int, default=1)
     args = ap.parse_args(argv)
-    return {"gen": cmd_gen, "oracle": cmd_oracle}[args.cmd](args)
+    return {"gen": cmd_gen, "train": cmd_train, "ship": cmd_ship, "oracle": cmd_oracle}[args.cmd](args)
 
 
 if __name__ == "__main__":

@@ -83,3 +83,27 @@ def test_finetune_steps_reduce_loss(tmp_path):
     model2, _ = train(data, data, cfg, run_dir=tmp_path / "run", log=lambda *_: None)
     for a, b in zip(model.state_dict().values(), model2.state_dict().values()):
         assert torch.equal(a, b)
+
+
+def test_finetuned_matcher_is_registered():
+    pytest.importorskip("torch")
+    from pixie.errors import WeightsError
+    from pixie.matching import available_matchers, get_matcher
+
+    if "aliked-ft-nn" not in available_matchers():
+        pytest.skip("shipped adapter or kornia ALIKED missing")
+    try:
+        m = get_matcher("aliked-ft-nn", allow_download=False, window=48.0, grid=8)
+    except WeightsError:
+        pytest.skip("ALIKED weights not available")
+    rng = np.random.default_rng(0)
+    img = (rng.random((96, 96, 3)) * 255).astype(np.uint8)
+    mask = np.zeros((96, 96), bool)
+    mask[20:80, 20:80] = True
+    f = m.extract(img, mask)
+    g = np.asarray(f.keypoints)
+    assert len(f) >= 49  # the 8 px grid inside the 60x60 mask at least
+    assert np.all((g >= 19.5) & (g <= 80.5))
+    assert np.allclose(np.linalg.norm(f.descriptors, axis=1), 1.0, atol=1e-4)
+    q = m.extract(img)
+    assert len(m.match(q, f)) >= 0

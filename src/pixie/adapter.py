@@ -77,6 +77,99 @@ def load_adapter(path: str | Path | None = None, device: torch.device | str = "c
     return model.eval().to(device)
 
 
+def grid_points(mask: np.ndarray, stride: int, avoid: np.ndarray | None = None, min_dist: float = 2.0) -> np.ndarray:
+    """(N, 2) float32 pixel centres of a regular ``stride`` grid inside ``mask`` (none within ``min_dist`` of ``avoid``)."""
+    h, w = mask.shape
+    off = stride // 2
+    ys, xs = np.mgrid[off:h:stride, off:w:stride]
+    keep = mask[ys, xs]
+    pts = np.stack([xs[keep], ys[keep]], 1).astype(np.float32)
+    if avoid is not None and len(avoid) and len(pts):
+        d = np.abs(pts[:, None, :] - np.asarray(avoid, np.float32)[None]).max(-1).min(1)
+        pts = pts[d >= min_dist]
+    return pts
+
+
+@torch.inference_mode()
+def aliked_extract(net, rgb: np.ndarray, mask: np.ndarray | None = None, grid: int = 0,
+                   extra_xy: np.ndarray | None = None):
+    """ALIKED detections (like kornia's ``forward_laf`` with the mask on the score map), plus, for a masked
+    image and ``grid > 0``, a regular grid of keypoints inside the mask, all described from one backbone pass.
+
+    Returns ``(keypoints (N, 2), descriptors (N, D), scores (N,), extra descriptors at extra_xy or None)``;
+    with ``extra_xy="describer"`` the last item is a function ``xy -> descriptors`` on the same feature map.
+    Grid keypoints follow the detections; their score is the score map's value there.
+    """
+    h, w = rgb.shape[:2]
+    dev = next(net.parameters()).device
+    x = torch.from_numpy(np.ascontiguousarray(rgb)).to(dev).permute(2, 0, 1)[None].float().div_(255.0)
+    fmap, smap = net.extract_dense_map(x)
+    if mask is not None:
+        smap = smap * torch.from_numpy(mask).to(dev).float()[None, None]
+    kps, scores, _ = net.dkd(smap)
+    wh = torch.tensor([w - 1, h - 1], dtype=torch.float32, device=dev)
+    kp = (wh * (kps[0] + 1) / 2).float().cpu().numpy()
+    sc = scores[0].float().cpu().numpy()
+    if mask is not None:  # drop detections off the mask (nearest pixel), as pixie's extractors do
+        ix = np.clip(np.rint(kp[:, 0]).astype(int), 0, w - 1)
+        iy = np.clip(np.rint(kp[:, 1]).astype(int), 0, h - 1)
+        on = mask[iy, ix]
+        kp, sc = kp[on], sc[on]
+        if grid and grid > 0:
+            g = grid_points(mask, int(grid), avoid=kp)
+            gs = smap[0, 0, g[:, 1].astype(int), g[:, 0].astype(int)].float().cpu().numpy() if len(g) else np.zeros(0)
+            kp = np.concatenate([kp, g]).astype(np.float32)
+            sc = np.concatenate([sc, gs]).astype(np.float32)
+
+    @torch.inference_mode()
+    def describe(xy):
+        if len(xy) == 0:
+            return np.zeros((0, fmap.shape[1]), np.float32)
+        t = torch.from_numpy(np.asarray(xy, np.float32)).to(dev).reshape(-1, 2)
+        t = torch.stack([t[:, 0].clamp(0, w - 1), t[:, 1].clamp(0, h - 1)], 1)
+        return net.desc_head(fmap, [t / wh * 2 - 1])[0][0].float().cpu().numpy()
+
+    if isinstance(extra_xy, str) and extra_xy == "describer":
+        return kp, describe(kp), sc, describe
+    return kp, describe(kp), sc, (None if extra_xy is None else describe(extra_xy))
+
+
+class GridAlikedExtractor:
+    """ALIKED-n16 + reference grid (see :func:`aliked_extract`) + optional adapter; a pixie extractor.
+
+    Reference images are always extracted with their mask, so the grid densifies the reference side (the
+    side whose keypoints need not be repeatable: every reference pixel has a known 3D point). Query crops
+    without a mask get plain ALIKED detections.
+    """
+
+    def __init__(self, device: torch.device, *, max_keypoints: int = 1024, detection_threshold: float | None = None,
+                 grid: int = 6, adapter: DescriptorAdapter | None = None, weights=None, allow_download: bool = False,
+                 model: str = "aliked-n16"):
+        from pixie.matching import AlikedExtractor
+
+        self._base = AlikedExtractor(device, model=model, max_keypoints=max_keypoints,
+                                     detection_threshold=detection_threshold, weights=weights,
+                                     allow_download=allow_download)
+        self.net = self._base.net
+        self.device = device
+        self.grid = int(grid or 0)
+        self.adapter = None if adapter is None else adapter.to(device).eval()
+        self.dim = self._base.dim if adapter is None else adapter.dim
+
+    def __call__(self, image: np.ndarray, mask: np.ndarray | None = None):
+        from pixie.matching import Features, check_image, check_mask
+
+        rgb = check_image(image)
+        h, w = rgb.shape[:2]
+        m = check_mask(mask, (h, w))
+        if m is not None and not m.any():
+            return Features.empty(self.dim, (h, w))
+        kp, desc, sc, _ = aliked_extract(self.net, rgb, m, self.grid)
+        if self.adapter is not None:
+            desc = self.adapter.apply_np(desc)
+        return Features(kp, desc, sc, (h, w))
+
+
 class AdaptedExtractor:
     """Wraps a pixie extractor: same keypoints, descriptors passed through an adapter.
 

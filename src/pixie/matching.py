@@ -18,6 +18,9 @@ Matchers
         XFeat + LighterGlue (kornia's LightGlue network in the XFeat configuration).
     ``minima-sp-lg``
         SuperPoint + the MINIMA LightGlue weights (``minima_lightglue.pth``) of the pixie paper.
+    ``aliked-ft-nn``
+        ALIKED-n16 whose descriptors pass through the adapter fine-tuned on synthetic photo/geometry pairs
+        (``pixie/data/weights/aliked_n16_geoadapter.pt``), plus a keypoint grid inside reference masks.
 
 Every weight file is found by :func:`pixie.weights.resolve_weights`; nothing is downloaded unless
 ``allow_download`` is true (the default of :func:`get_matcher`, a user-facing loader).
@@ -1202,6 +1205,33 @@ def _make_lg(kind: str, lg_weights: str) -> Callable[..., Matcher]:
     return factory
 
 
+def _make_ft_nn(adapter: str) -> Callable[..., Matcher]:
+    """ALIKED-n16 + reference grid + a fine-tuned descriptor adapter (:mod:`pixie.adapter`), mutual NN.
+
+    Options as ``aliked-nn`` plus ``grid`` (stride in px of the extra keypoints put inside the mask of masked
+    images, i.e. references; 0 disables). ``weights`` may map the adapter name to another adapter file.
+    """
+
+    def factory(name: str, device: torch.device, weights: WeightsArg, allow_download: bool, **opts: Any) -> Matcher:
+        from pixie.adapter import GridAlikedExtractor, load_adapter, shipped_adapter_path
+
+        _split_options(name, opts, ("max_keypoints", "detection_threshold", "grid", *_NN_OPTIONS))
+        ext_opts = {k: opts[k] for k in ("max_keypoints", "detection_threshold", "grid") if k in opts}
+        nn_opts = {k: opts[k] for k in _NN_OPTIONS if k in opts}
+        path = _weights_for(weights, adapter) or shipped_adapter_path(adapter)
+        extractor = GridAlikedExtractor(device, weights=_weights_for(weights, "aliked-n16"),
+                                        allow_download=allow_download, adapter=load_adapter(path), **ext_opts)
+        return Matcher(name, extractor, MutualNNAssigner(device, **nn_opts))  # type: ignore[arg-type]
+
+    return factory
+
+
+def _adapter_shipped(name: str) -> bool:
+    from pixie.adapter import shipped_adapter_path
+
+    return shipped_adapter_path(name).is_file()
+
+
 def _kornia_has(*names: str) -> bool:
     try:
         KF = _kornia_feature()
@@ -1233,6 +1263,9 @@ _REGISTRY: dict[str, tuple[Callable[..., Matcher], Callable[[], bool], tuple[str
                           ("xfeat", "xfeat_lighterglue")),
     "minima-sp-lg": (_make_lg("superpoint", "minima_lightglue"), lambda: _kornia_has("LightGlue"),
                      ("superpoint", "minima_lightglue")),
+    # fine-tuned on synthetic photo <-> geometry pairs (pixie.train.finetune; model card in pixie/data/weights)
+    "aliked-ft-nn": (_make_ft_nn("aliked_n16_geoadapter"),
+                     lambda: _kornia_has("ALIKED") and _adapter_shipped("aliked_n16_geoadapter"), ("aliked-n16",)),
 }
 
 

@@ -39,7 +39,7 @@ class PairConfig:
     focal_factor: float = 4.0  # reference K_start focal = focal_factor * size
     object_px: tuple[float, float] = (40.0, 120.0)  # projected diameter of the target in the 640x480 frame
     max_view_deg: float = 15.0  # angle between query and reference viewing directions
-    max_roll_deg: float = 180.0  # in-plane roll of the reference (180: any)
+    max_roll_deg: float = 22.5  # in-plane roll of the reference: half the 45° step of the reference rolls (180: any)
     n_distractors: tuple[int, int] = (2, 5)
     occluder_prob: float = 0.5  # probability that one distractor is put in front of the target
     min_visib: float = 0.35

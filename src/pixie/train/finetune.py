@@ -69,59 +69,32 @@ class AlikedDense:
 
         self.ext = AlikedExtractor(torch.device("cpu"), model=model, max_keypoints=max_keypoints, allow_download=False)
         self.net = self.ext.net
-        self._last: tuple | None = None  # (key, fmap, smap) of the last image: describe() reuses it
 
-    @torch.inference_mode()
-    def __call__(self, rgb: np.ndarray, mask: np.ndarray | None = None, extra_xy: np.ndarray | None = None):
-        """Detected keypoints, descriptors, scores (as ``Matcher.extract``) and descriptors at ``extra_xy``.
-
-        One backbone pass: detection (score map times the mask, like kornia's ``forward_laf``) and the
-        extra descriptors share the dense feature map.
-        """
-        from pixie.matching import Features, _keep_in_mask, check_image
+    def __call__(self, rgb: np.ndarray, mask: np.ndarray | None = None, extra_xy: np.ndarray | None = None,
+                 grid: int = 0):
+        """Features (detections [+ grid inside the mask]) and descriptors at ``extra_xy`` (or a describer
+        function on the same feature map with ``extra_xy="describer"``); one backbone pass."""
+        from pixie.adapter import aliked_extract
+        from pixie.matching import Features, check_image
 
         img = check_image(rgb)
-        h, w = img.shape[:2]
-        key = (img.__array_interface__["data"][0], img.shape, img.tobytes()[::997])
-        if self._last is not None and self._last[0] == key:
-            fmap, smap = self._last[1], self._last[2]
-        else:
-            x = torch.from_numpy(img).permute(2, 0, 1)[None].float().div_(255.0)
-            fmap, smap = self.net.extract_dense_map(x)
-            self._last = (key, fmap, smap)
-        if mask is not None:
-            smap = smap * torch.from_numpy(mask).float()[None, None]
-        kps, scores, _ = self.net.dkd(smap)
-        desc = self.net.desc_head(fmap, kps)[0][0]
-        wh = torch.tensor([w - 1, h - 1], dtype=torch.float32)
-        kp = (wh * (kps[0] + 1) / 2).numpy()
-        f = Features(kp, desc.numpy(), scores[0].numpy(), (h, w))
-        f = f.subset(_keep_in_mask(f.keypoints, mask))
-        extra = None
-        if extra_xy is not None:
-            xy = torch.from_numpy(np.asarray(extra_xy, np.float32)).reshape(-1, 2)
-            xy = torch.stack([xy[:, 0].clamp(0, w - 1), xy[:, 1].clamp(0, h - 1)], 1)
-            norm = xy / wh * 2 - 1
-            extra = self.net.desc_head(fmap, [norm])[0][0].numpy() if len(norm) else np.zeros((0, f.dim), np.float32)
-        return f, extra
-
-    def describe(self, rgb: np.ndarray, xy: np.ndarray) -> np.ndarray:
-        return self(rgb, extra_xy=xy)[1]
+        kp, desc, sc, extra = aliked_extract(self.net, img, mask, grid, extra_xy)
+        return Features(kp, desc, sc, img.shape[:2]), extra
 
 
 # ------------------------------------------------------------------------------------------------------ data
 
 
-def extract_pair(pair, dense: AlikedDense, encoding: str) -> dict[str, np.ndarray]:
+def extract_pair(pair, dense: AlikedDense, encoding: str, grid: int = 6) -> dict[str, np.ndarray]:
     """The training arrays of one pair for one reference encoding (see the module docstring)."""
     ref = pair.refs[encoding]
     # GT positions of every reference pixel's point in the query are known before detection, but the
     # reference keypoints are not: detect on the reference first, then one pass over the query does both.
-    rf, _ = dense(ref, mask=pair.ref_mask)
+    rf, ref_describe = dense(ref, mask=pair.ref_mask, extra_xy="describer", grid=grid)
     r_uv, r_valid = pair.correspond_ref(rf.keypoints)
     qf, h_desc = dense(pair.query, extra_xy=r_uv[r_valid])
     q_uv, q_valid = pair.correspond(qf.keypoints)
-    g_desc = dense.describe(ref, q_uv[q_valid]) if q_valid.any() else np.zeros((0, rf.dim), np.float32)
+    g_desc = ref_describe(q_uv[q_valid])
     G = np.zeros((len(qf), qf.dim), np.float16)
     G[q_valid] = g_desc
     Hq = np.zeros((len(rf), rf.dim), np.float16)
@@ -131,12 +104,12 @@ def extract_pair(pair, dense: AlikedDense, encoding: str) -> dict[str, np.ndarra
         "r_kp": rf.keypoints, "r_desc": rf.descriptors.astype(np.float16), "r_uv": r_uv, "r_valid": r_valid,
         "g_desc": G, "h_desc": Hq,
         "meta": np.frombuffer(json.dumps({"seed": pair.seed, "encoding": encoding, "part": pair.mesh.name,
-                                          "visib": pair.visib_fract, "size": int(pair.query.shape[0])}).encode(),
+                                          "visib": pair.visib_fract, "size": int(pair.query.shape[0]), "grid": grid}).encode(),
                               np.uint8),
     }
 
 
-def build_cache(seeds, out_dir: str | Path, pair_cfg=None, encodings_per_pair: int = 1,
+def build_cache(seeds, out_dir: str | Path, pair_cfg=None, encodings_per_pair: int = 1, grid: int = 6,
                 enc_probs: dict[str, float] | None = None, log=print) -> list[Path]:
     """Make pairs for ``seeds`` and write one ``pair_<seed>_<enc>.npz`` each (existing files are kept)."""
     from pixie.synth.pairs import make_pair
@@ -158,7 +131,7 @@ def build_cache(seeds, out_dir: str | Path, pair_cfg=None, encodings_per_pair: i
         dense = dense or AlikedDense()
         pair = make_pair(int(seed), pair_cfg)
         for e, path in zip(encs, paths):
-            arrays = extract_pair(pair, dense, e)
+            arrays = extract_pair(pair, dense, e, grid)
             tmp = path.with_suffix(".tmp.npz")
             np.savez(tmp, **arrays)
             os.replace(tmp, path)
@@ -350,7 +323,7 @@ def train(train_data: list[dict], val_data: list[dict], cfg: TrainConfig, run_di
         opt.step()
         step += 1
         run_loss.append(float(loss.detach()))
-        if step % cfg.eval_every == 0 or step == cfg.steps:
+        if step % cfg.eval_every == 0 or step == cfg.steps or step == 1:
             model.eval()
             v = evaluate(model, val_data) if val_data else {}
             with torch.no_grad():
