@@ -161,6 +161,17 @@ class ObjectCache:
             return self._refs[(key, oid)]
         path = REFS_CACHE / key / f"obj_{oid:06d}.npz"
         mesh = self.mesh(oid)
+        lock = path.with_suffix(".lock")
+        path.parent.mkdir(parents=True, exist_ok=True)
+        if not path.is_file():  # another bench process may be building it: wait for it
+            try:
+                os.close(os.open(lock, os.O_CREAT | os.O_EXCL))
+                owner = True
+            except FileExistsError:
+                owner = False
+                log(f"  waiting for obj {oid} references being built by another process ({lock})")
+                while lock.exists() and not path.is_file():
+                    time.sleep(5)
         if path.is_file():
             refs = load_reference_set(path, mesh)
         else:
@@ -171,6 +182,7 @@ class ObjectCache:
             save_reference_set(refs, path)
             (path.parent / "config.json").write_text(json.dumps({"refs": cfg.refs.__dict__, "matcher": cfg.match.matcher,
                                                                  "max_keypoints": cfg.match.max_keypoints}, indent=1))
+            lock.unlink(missing_ok=True)
             log(f"  built obj {oid} in {time.perf_counter() - t0:.0f} s")
         self.build_seconds[(key, oid)] = refs.build_seconds
         self.refs_bytes[(key, oid)] = path.stat().st_size
@@ -328,7 +340,7 @@ def _median(vals):
 
 def run_pipeline(ds: BopDataset, targets: list[Target], cfg: PixieConfig, name: str, out_dir: Path,
                  crop: str = "visib", tag: str = "", objects: ObjectCache | None = None, ar: bool = True,
-                 progress=print) -> dict:
+                 progress=print, reverse: bool = False) -> dict:
     """Run the estimator on ``targets``; resumable through ``<out>/runs/<hash>/targets.jsonl``."""
     from pixie.estimator import PoseEstimator
 
@@ -354,7 +366,7 @@ def run_pipeline(ds: BopDataset, targets: list[Target], cfg: PixieConfig, name: 
         by_obj.setdefault(t.obj_id, []).append(t)
     t_start = time.perf_counter()
     n_run = 0
-    for oid in sorted(by_obj):
+    for oid in sorted(by_obj, reverse=reverse):
         cfg_o = copy.deepcopy(cfg)
         if matcher is None:
             matcher = make_matcher(cfg_o, cfg_o.refs.size)
@@ -464,6 +476,8 @@ def main(argv: list[str] | None = None) -> int:
     ap.add_argument("--crop", choices=("visib", "obj"), default="visib", help="query box: bbox_visib (default) or bbox_obj")
     ap.add_argument("--tag", default="", help="part of the run hash (bump it after changing the estimator code)")
     ap.add_argument("--no-ar", action="store_true", help="skip AR (no VSD)")
+    ap.add_argument("--reverse-objects", action="store_true", help="process objects in decreasing id order "
+                    "(a second process then builds other objects' references first)")
     ap.add_argument("--threads", type=int, default=None, help="torch threads")
     args = ap.parse_args(argv)
     if args.threads:
@@ -488,7 +502,7 @@ def main(argv: list[str] | None = None) -> int:
             (args.out / f"oracle_{name}.json").write_text(json.dumps(r, indent=1, default=float))
         else:
             r = run_pipeline(ds, targets, cfg, name, args.out, crop=args.crop, tag=args.tag, objects=objects,
-                             ar=not args.no_ar)
+                             ar=not args.no_ar, reverse=args.reverse_objects)
             (args.out / f"{name}.json").write_text(json.dumps(r, indent=1, default=float))
         rows.append(r)
         print(format_table([r], oracle=args.oracle).splitlines()[1])

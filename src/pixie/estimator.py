@@ -177,7 +177,9 @@ class PoseEstimator:
                 for k, m in zip(idx, matches):
                     v, r = self._pairs[k]
                     if self.cfg.match.in_plane == "query":
-                        r = ci
+                        # The crop turned by angle a looks like a camera rolled by a; it matched the roll-0
+                        # reference, so the query camera is that reference rolled by -a: roll (-ci) mod R.
+                        r = (-ci) % len(crops)
                     if pairs is not None and (v, r) not in pairs:
                         continue
                     p2, p3 = lift(qf.keypoints, self._xyz[e][k], m.idx_q, m.idx_r)
@@ -279,7 +281,7 @@ class PoseEstimator:
         v, r = self._nearest_view(best.T_cam_from_obj)
         q, S = self.cfg.query, self.refs.size
         ref_roll = r if self.cfg.match.in_plane == "reference" else 0
-        angle = 0.0 if self.cfg.match.in_plane == "reference" else float(roll_angles(self.refs.n_rolls)[r])
+        angle = 0.0 if self.cfg.match.in_plane == "reference" else -float(roll_angles(self.refs.n_rolls)[r])
         crop = square_crop(image, pb, q.crop_pad, S, angle, mask)
         qf = self.matcher.extract(crop.image, mask=crop.mask)
         k = self._pair_index.get((v, ref_roll))
