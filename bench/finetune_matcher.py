@@ -79,12 +79,12 @@ def cmd_ship(args) -> int:
     from pixie.adapter import DescriptorAdapter, shipped_adapter_path
     from pixie.train.finetune import load_checkpoint, save_adapter
 
-    ck = load_checkpoint(Path(args.run) / "last.pt")
+    ck = load_checkpoint(Path(args.run) / ("best.pt" if args.best else "last.pt"))
     c = ck["config"]
     model = DescriptorAdapter(128, c["hidden"], c["layers"])
     model.load_state_dict(ck["model"])
     summ = json.loads((Path(args.run) / "summary.json").read_text())
-    meta = {"steps": ck["step"], "train_pairs": summ["train_pairs"], "val_pairs": summ["val_pairs"],
+    meta = {"steps": ck["step"], "checkpoint": "best (lowest val loss)" if args.best else "last", "train_pairs": summ["train_pairs"], "val_pairs": summ["val_pairs"],
             "val_final": ck["history"][-1] if ck["history"] else None, "val_off_the_shelf": summ["val_off_the_shelf"],
             "base": "aliked-n16 (Shiaoming/ALIKED weights), descriptors of kornia's ALIKED"}
     path = save_adapter(model, args.to or shipped_adapter_path(), meta)
@@ -252,6 +252,7 @@ def main(argv=None) -> int:
     sh = sub.add_parser("ship", help="copy the trained adapter into src/pixie/data/weights")
     sh.add_argument("--run", type=Path, default=OUT / "run")
     sh.add_argument("--to", type=Path, default=None)
+    sh.add_argument("--best", action="store_true", help="ship the checkpoint of the lowest validation loss")
     o = sub.add_parser("oracle", help="LM-O oracle comparison (bench/lmo_pipeline.run_oracle), same targets")
     o.add_argument("--max-targets", type=int, default=40)
     o.add_argument("--matchers", default="aliked-nn,aliked-ft-nn")

@@ -334,6 +334,10 @@ def train(train_data: list[dict], val_data: list[dict], cfg: TrainConfig, run_di
                    **{f"val_{k}": x for k, x in v.items()}, "seconds": time.perf_counter() - t0}
             history.append(rec)
             run_loss = []
+            best = min((h["val_loss"] for h in history[:-1] if h.get("val_loss") is not None), default=None)
+            if run_dir and vl is not None and (best is None or vl < best):  # early-stopping snapshot
+                save_checkpoint(run_dir / "best.pt", {"model": model.state_dict(), "log_temp": log_temp.detach().clone(),
+                                                      "step": step, "history": list(history), "config": asdict(cfg)})
             log("  " + json.dumps({k: (round(x, 4) if isinstance(x, float) else x) for k, x in rec.items()}))
         if run_dir and (step % cfg.ckpt_every == 0 or step == cfg.steps):
             save_checkpoint(run_dir / "last.pt", {"model": model.state_dict(), "log_temp": log_temp.detach().clone(),
