@@ -60,14 +60,14 @@ class PoseConfig:
 
     ransac_iterations: int = 1000
     reprojection_px: float = 5.0  # RANSAC inlier threshold, in the pixels named by threshold_space
-    threshold_space: str = "image"  # 'image': original-image px; 'crop': px of the size x size query crop (scales with the object)
+    threshold_space: str = "crop"  # 'image': original-image px; 'crop': px of the size x size query crop (scales with the object)
     confidence: float = 0.9999
     min_inliers: int = 6
     solver: str = "opencv"  # 'opencv' (EPnP+RANSAC, LM refinement) or 'poselib'
     mode: str = "per_view"  # 'per_view': best view wins; 'concat': all views in one PnP problem
     scoring: str = "combined"  # 'inliers' (paper), 'combined' (inliers x silhouette agreement)
     depth_from_bbox: bool = True  # re-derive z from the crop scale where PnP depth is unreliable
-    top_k_views: int = 8  # coarse candidates kept for scoring / multi-hypothesis output
+    top_k_views: int = 24  # coarse candidates kept for scoring / multi-hypothesis output
     views: str = "all"  # 'all' reference views or 'canonical' (the paper's 6 coarse views) for the first pass
 
 
@@ -76,7 +76,7 @@ class RefineConfig:
     """Step 5: iterative view selection (the paper's), optional extras."""
 
     view_selection_iters: int = 1
-    recrop: bool = False  # view selection re-crops the query around the best pose's projected (amodal) box, like the references
+    recrop: bool = True  # view selection re-crops the query around the best pose's projected (amodal) box, like the references
     n_hypotheses: int = 5
 
 
