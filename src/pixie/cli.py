@@ -140,7 +140,8 @@ def cmd_run(args: argparse.Namespace) -> int:
     csv = run_dataset(args.dataset, args.output, cfg, objects=objects, max_targets=args.max_targets,
                       refs_dir=args.refs_dir)
     print(f"results -> {csv} ({time.perf_counter() - t0:.0f} s); scoring")
-    run_eval(args.dataset, csv, args.output, report=not args.no_report)
+    run_eval(args.dataset, csv, args.output, report=not args.no_report,
+             only_estimated=args.max_targets is not None or args.objects is not None)
     return 0
 
 

@@ -686,6 +686,7 @@ def run_eval(
     n_overlays: int = 4,
     progress: bool = False,
     echo: Callable[[str], None] | None = print,
+    only_estimated: bool = False,
 ) -> Scores:
     """Evaluate a results CSV and write ``scores.json``, ``per_target.csv`` and ``report.html``.
 
@@ -697,6 +698,8 @@ def run_eval(
     metrics, n_points : see :func:`evaluate`
     report : write the HTML report (with ``n_overlays`` best and worst target overlays)
     echo : function printing the summary table (None = silent)
+    only_estimated : score only the targets that have at least one row in the results (a subset run);
+        by default every target of the dataset counts and a missing estimate is a miss, as in BOP
 
     Returns
     -------
@@ -706,7 +709,12 @@ def run_eval(
     out.mkdir(parents=True, exist_ok=True)
     ds = BopDataset(Path(dataset_root))
     objects: dict[int, ObjectData] = {}
-    scores = evaluate(ds, results_csv, metrics=metrics, n_points=n_points, progress=progress, objects=objects)
+    targets = None
+    if only_estimated:
+        rows = {(e.scene_id, e.im_id, e.obj_id) for e in read_results_csv(results_csv)}
+        targets = [t for t in ds.targets() if (t.scene_id, t.im_id, t.obj_id) in rows]
+    scores = evaluate(ds, results_csv, metrics=metrics, n_points=n_points, progress=progress, objects=objects,
+                      targets=targets)
     write_scores_json(scores, out / "scores.json")
     write_per_target_csv(scores, out / "per_target.csv")
     if report:
@@ -730,6 +738,8 @@ def add_eval_arguments(parser: argparse.ArgumentParser) -> argparse.ArgumentPars
     parser.add_argument("--n-points", type=int, default=None, help="vertices used by ADD/ADD-S (default: all)")
     parser.add_argument("--no-report", action="store_true", help="skip the HTML report")
     parser.add_argument("--progress", action="store_true")
+    parser.add_argument("--only-estimated", action="store_true",
+                        help="score only targets with a row in the results (subset runs); default: all targets, misses count")
     return parser
 
 
@@ -743,5 +753,6 @@ def main_eval(args: argparse.Namespace) -> int:
         n_points=args.n_points,
         report=not args.no_report,
         progress=args.progress,
+        only_estimated=args.only_estimated,
     )
     return 0
