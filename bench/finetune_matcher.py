@@ -3,14 +3,16 @@
 Usage::
 
     # 1. synthetic pairs -> cached ALIKED features (resumable; run several in parallel on seed ranges)
-    nice .venv/bin/python bench/finetune_matcher.py gen --seeds 10000:10400 --out out/ft/cache/train
-    nice .venv/bin/python bench/finetune_matcher.py gen --seeds 900000:900040 --out out/ft/cache/val
+    nice .venv/bin/python bench/finetune_matcher.py gen --seeds 50000:50300 --out out/ft/cache/train
+    nice .venv/bin/python bench/finetune_matcher.py gen --seeds 900000:900030 --out out/ft/cache/val
     # 2. train the adapter (resumable checkpoints in out/ft/run/)
-    nice .venv/bin/python bench/finetune_matcher.py train --steps 2000
+    nice .venv/bin/python bench/finetune_matcher.py train --steps 400 --eval-every 100 --hidden 64 --wd 1e-2 --run out/ft/run_h64
     # 3. copy the adapter into the package with its model card numbers
-    nice .venv/bin/python bench/finetune_matcher.py ship
-    # 4. oracle comparison on real LM-O crops (evaluation only), off-the-shelf vs fine-tuned
-    nice .venv/bin/python bench/finetune_matcher.py oracle --max-targets 48
+    nice .venv/bin/python bench/finetune_matcher.py ship --run out/ft/run_h64 --best
+    # 4. oracle comparison on real LM-O crops (evaluation only), off-the-shelf vs fine-tuned, same targets
+    #    (ALIKED features are cached on disk by image, so every variant shares keypoints and costs one extraction)
+    nice .venv/bin/python bench/finetune_matcher.py oracle --max-targets 80 \
+        --matchers aliked-nn,aliked-topk,aliked-grid6,aliked-ft-nogrid,aliked-ft-grid6,aliked-ft-topk
 
 No benchmark object is ever used for training: the data are procedural parts (pixie.synth.parts).
 """
@@ -97,7 +99,8 @@ class CachedAliked:
     adapter is applied on top, so off-the-shelf and fine-tuned descriptors share the same keypoints and
     the fine-tuned run costs no second backbone pass."""
 
-    def __init__(self, cache_dir: Path, adapter=None, max_keypoints: int = 1024, grid: int = 0):
+    def __init__(self, cache_dir: Path, adapter=None, max_keypoints: int = 1024, grid: int = 0,
+                 detection_threshold: float | None = None):
         import torch
 
         from pixie.matching import AlikedExtractor
@@ -110,7 +113,9 @@ class CachedAliked:
         self.grid = int(grid)
         self.device = torch.device("cpu")
         self.dim = 128
-        self._factory = lambda: AlikedExtractor(self.device, max_keypoints=self._mk, allow_download=False)
+        self.threshold = detection_threshold
+        self._factory = lambda: AlikedExtractor(self.device, max_keypoints=self._mk, allow_download=False,
+                                                detection_threshold=detection_threshold)
 
     def __call__(self, image, mask=None):
         import hashlib
@@ -124,6 +129,8 @@ class CachedAliked:
         h.update(str(image.shape).encode() + str(self._mk).encode())
         if self.grid and mask is not None:
             h.update(f"grid{self.grid}".encode())
+        if self.threshold is not None:
+            h.update(f"thr{self.threshold}".encode())
         path = self.cache_dir / f"{h.hexdigest()}.npz"
         if path.is_file():
             with np.load(path) as z:
@@ -167,8 +174,16 @@ def oracle_matchers(names: list[str], window: float, cache_dir: Path, adapter_pa
         elif n == "aliked-lg":
             model = build_lightglue("aliked", load_state_dict("aliked_lightglue"), dev)
             out[n] = Matcher(n, CachedAliked(cache_dir), LightGlueAssigner(model, dev))
-        elif n == "aliked-ft-nn":
+        elif n == "aliked-ft-nogrid":  # the adapter alone (no reference grid)
             out[n] = Matcher(n, CachedAliked(cache_dir, adapter=load_adapter(adapter_path)),
+                             MutualNNAssigner(dev, window=window))
+        elif n == "aliked-ft-grid":  # adapter + 6 px reference grid, ALIKED threshold 0.2 (first shipped default)
+            out[n] = Matcher(n, CachedAliked(cache_dir, adapter=load_adapter(adapter_path), grid=6),
+                             MutualNNAssigner(dev, window=window))
+        elif n in ("aliked-topk", "aliked-ft-topk", "aliked-ft-nn"):  # threshold 0: the 1024 strongest maxima
+            # aliked-ft-nn = what get_matcher("aliked-ft-nn") builds (adapter + top-k, no grid)
+            ad = load_adapter(adapter_path) if n.startswith("aliked-ft") else None
+            out[n] = Matcher(n, CachedAliked(cache_dir, adapter=ad, detection_threshold=0.0),  # same cache as topk
                              MutualNNAssigner(dev, window=window))
         elif n.startswith("aliked-grid") or n.startswith("aliked-ft-grid"):  # e.g. aliked-grid6, aliked-ft-grid6
             g = int(n.rsplit("grid", 1)[1])
@@ -255,7 +270,10 @@ def main(argv=None) -> int:
     sh.add_argument("--best", action="store_true", help="ship the checkpoint of the lowest validation loss")
     o = sub.add_parser("oracle", help="LM-O oracle comparison (bench/lmo_pipeline.run_oracle), same targets")
     o.add_argument("--max-targets", type=int, default=40)
-    o.add_argument("--matchers", default="aliked-nn,aliked-ft-nn")
+    o.add_argument("--matchers", default="aliked-nn,aliked-topk,aliked-grid6,aliked-ft-nogrid,aliked-ft-grid6,aliked-ft-topk",
+                   help="aliked-nn, aliked-nn-nowin, aliked-lg, aliked-topk (threshold 0), aliked-gridN (off-the-shelf "
+                        "+ N px reference grid), aliked-ft-nogrid, aliked-ft-gridN, aliked-ft-topk (= aliked-ft-nn, "
+                        "the registered backend's defaults)")
     o.add_argument("--adapter", type=Path, default=None, help="adapter file (default: the shipped one)")
     o.add_argument("--set", action="append", default=[], help="section.key=value (as lmo_pipeline)")
     o.add_argument("--out", type=Path, default=OUT / "oracle")

@@ -19,8 +19,8 @@ Matchers
     ``minima-sp-lg``
         SuperPoint + the MINIMA LightGlue weights (``minima_lightglue.pth``) of the pixie paper.
     ``aliked-ft-nn``
-        ALIKED-n16 whose descriptors pass through the adapter fine-tuned on synthetic photo/geometry pairs
-        (``pixie/data/weights/aliked_n16_geoadapter.pt``), plus a keypoint grid inside reference masks.
+        ALIKED-n16 (top-k detections) whose descriptors pass through the adapter fine-tuned on synthetic
+        photo/geometry pairs (``pixie/data/weights/aliked_n16_geoadapter.pt``); optional reference-mask grid.
 
 Every weight file is found by :func:`pixie.weights.resolve_weights`; nothing is downloaded unless
 ``allow_download`` is true (the default of :func:`get_matcher`, a user-facing loader).
@@ -1206,10 +1206,10 @@ def _make_lg(kind: str, lg_weights: str) -> Callable[..., Matcher]:
 
 
 def _make_ft_nn(adapter: str) -> Callable[..., Matcher]:
-    """ALIKED-n16 + reference grid + a fine-tuned descriptor adapter (:mod:`pixie.adapter`), mutual NN.
+    """ALIKED-n16 (top-k detections by default) + a fine-tuned descriptor adapter (:mod:`pixie.adapter`), mutual NN.
 
-    Options as ``aliked-nn`` plus ``grid`` (stride in px of the extra keypoints put inside the mask of masked
-    images, i.e. references; 0 disables). ``weights`` may map the adapter name to another adapter file.
+    Options as ``aliked-nn`` plus ``grid`` (stride in px of extra keypoints put inside the mask of masked
+    images, i.e. references; 0, the default, disables). ``weights`` may map the adapter name to another file.
     """
 
     def factory(name: str, device: torch.device, weights: WeightsArg, allow_download: bool, **opts: Any) -> Matcher:
