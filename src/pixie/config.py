@@ -65,7 +65,11 @@ class PoseConfig:
     min_inliers: int = 6
     solver: str = "opencv"  # 'opencv' (EPnP+RANSAC, LM refinement) or 'poselib'
     mode: str = "per_view"  # 'per_view': best view wins; 'concat': all views in one PnP problem
-    scoring: str = "combined"  # 'inliers' (paper), 'combined' (inliers x silhouette agreement)
+    # 'inliers' (paper); 'combined': inliers x rotation-to-reference x box agreement; 'similarity' /
+    # 'combined_similarity': summed inlier match similarity instead of the count; 'excess' / 'combined_excess':
+    # summed inlier similarity above the query's background (median over all (view, roll) pairs of their mean
+    # match similarity), which separates views where counts do not (bench/RESULTS.md, LM-O scoring experiments)
+    scoring: str = "combined_excess"
     depth_from_bbox: bool = True  # re-derive z from the crop scale where PnP depth is unreliable
     top_k_views: int = 24  # coarse candidates kept for scoring / multi-hypothesis output
     views: str = "all"  # 'all' reference views or 'canonical' (the paper's 6 coarse views) for the first pass

@@ -24,6 +24,8 @@ from pixie.views import roll_angles
 
 log = logging.getLogger(__name__)
 
+_MIN_BACKGROUND_PAIRS = 8  # (view, roll) pairs with matches needed to estimate a query's background similarity
+
 
 @dataclass
 class Hypothesis:
@@ -37,6 +39,8 @@ class Hypothesis:
     roll: int
     rot_to_ref_deg: float
     box_iou: float
+    sim_sum: float = 0.0  # summed matcher similarity (cosine for NN backends) of the PnP inliers
+    sim_mean: float = 0.0  # its mean over the inliers
 
 
 @dataclass
@@ -114,6 +118,7 @@ class PoseEstimator:
             self._banks[e] = self.matcher.prepare_refs([feats[k] for k in keep])
             self._xyz[e] = [xyz[k] for k in keep]
         self._pairs = [(v, r) for v in range(refs.n_views) for r in self._rolls]
+        self._sim_background = 0.0  # set per query by estimate()
         self._pair_index = {p: i for i, p in enumerate(self._pairs)}
         self._axes = np.stack([optical_axis_in_object(T) for T in refs.poses[:, 0]])
         self._box_points = refs.mesh.vertices[:: max(1, len(refs.mesh.vertices) // 2000)]
@@ -137,6 +142,12 @@ class PoseEstimator:
 
         t = time.perf_counter()
         corr = self._match_all(crops, qfeats, pairs=None)
+        # Background similarity of this query: the median over all (view, roll) pairs of their mean match
+        # similarity. Windowed mutual NN matches every view about equally often; what tells the right view
+        # apart is how much more similar its (inlier) matches are than this level ('*excess' scorings).
+        # Needs many pairs to be a background: with fewer (e.g. a one-view reference set) it is 0.
+        means = [float(np.mean(c[2])) for c in corr.values() if len(c[2])]
+        self._sim_background = float(np.median(means)) if len(means) >= _MIN_BACKGROUND_PAIRS else 0.0
         timings["match"] = time.perf_counter() - t
 
         t = time.perf_counter()
@@ -164,7 +175,7 @@ class PoseEstimator:
 
     def _match_all(self, crops, qfeats, pairs: list[tuple[int, int]] | None) -> dict:
         """2D (original image px) – 3D correspondences per (view, roll), all encodings concatenated."""
-        out: dict[tuple[int, int], tuple[np.ndarray, np.ndarray]] = {}
+        out: dict[tuple[int, int], tuple[np.ndarray, np.ndarray, np.ndarray]] = {}
         for e in self.encodings:
             bank = self._banks[e]
             if pairs is None:
@@ -182,16 +193,23 @@ class PoseEstimator:
                         r = (-ci) % len(crops)
                     if pairs is not None and (v, r) not in pairs:
                         continue
-                    p2, p3 = lift(qf.keypoints, self._xyz[e][k], m.idx_q, m.idx_r)
+                    p2, p3, sc = self._lift(qf, e, k, m)
                     if len(p2) == 0:
                         continue
                     p2 = crop.to_original(p2)
                     if (v, r) in out:
-                        a2, a3 = out[(v, r)]
-                        out[(v, r)] = (np.concatenate([a2, p2]), np.concatenate([a3, p3]))
+                        a2, a3, a4 = out[(v, r)]
+                        out[(v, r)] = (np.concatenate([a2, p2]), np.concatenate([a3, p3]), np.concatenate([a4, sc]))
                     else:
-                        out[(v, r)] = (p2, p3)
+                        out[(v, r)] = (p2, p3, sc)
         return out
+
+    def _lift(self, qf, e: str, k: int, m):
+        """:func:`lift` that also returns each correspondence's match similarity."""
+        xyz = self._xyz[e][k]
+        keep = np.all(np.isfinite(xyz[m.idx_r]), axis=1)
+        p2, p3 = lift(qf.keypoints, xyz, m.idx_q[keep], m.idx_r[keep])
+        return p2, p3, m.scores[keep].astype(np.float64)
 
     def _solve(self, corr: dict, K: np.ndarray, box: np.ndarray, px_scale: float = 1.0) -> list[Hypothesis]:
         p = self.cfg.pose
@@ -211,34 +229,46 @@ class PoseEstimator:
         if p.mode == "concat" and cands:
             p2 = np.concatenate([c[0] for _, c in cands])
             p3 = np.concatenate([c[1] for _, c in cands])
-            cands = [(cands[0][0], (p2, p3))]
+            sc = np.concatenate([c[2] for _, c in cands])
+            cands = [(cands[0][0], (p2, p3, sc))]
         elif p.mode != "per_view":
             raise ConfigError(f"pose.mode must be 'per_view' or 'concat', got {p.mode!r}")
         hyps = []
-        for (v, r), (p2, p3) in cands:
+        for (v, r), (p2, p3, sc) in cands:
             res = solve_pnp_ransac(p2, p3, K, p.ransac_iterations, thr, p.confidence, p.min_inliers, p.solver)
-            h = self._hypothesis(res, v, r, K, box)
+            h = self._hypothesis(res, v, r, K, box, sc)
             if h is not None:
                 hyps.append(h)
         return sorted(hyps, key=lambda h: -h.score)
 
-    def _hypothesis(self, res: PnPResult, v: int, r: int, K: np.ndarray, box: np.ndarray) -> Hypothesis | None:
+    def _hypothesis(self, res: PnPResult, v: int, r: int, K: np.ndarray, box: np.ndarray,
+                    sims: np.ndarray | None = None) -> Hypothesis | None:
         if not res.ok:
             return None
+        s_in = sims[res.inliers] if sims is not None and len(sims) == res.n_correspondences else np.ones(res.n_inliers)
+        sim_sum = float(s_in.sum())
+        sim_mean = float(s_in.mean()) if len(s_in) else 0.0
         T = res.T_cam_from_obj
         rot = rotation_angle_deg(T[:3, :3], self.refs.poses[v, r][:3, :3])
         iou = box_iou(projected_box(T, K, self._box_points), box)
         if self.cfg.pose.depth_from_bbox:
             T = depth_from_box(T, K, self._box_points, box)
-        if self.cfg.pose.scoring == "inliers":
-            score = float(res.n_inliers)
-        elif self.cfg.pose.scoring == "combined":
+        sc = self.cfg.pose.scoring
+        # (+ a tiny inlier term: ties break by support and a valid pose never scores 0, i.e. 'failed')
+        excess = max(0.0, float(np.sum(s_in - self._sim_background))) + 1e-3 * res.n_inliers
+        support = {"inliers": float(res.n_inliers), "combined": float(res.n_inliers),
+                   "similarity": sim_sum, "combined_similarity": sim_sum,
+                   "excess": excess, "combined_excess": excess}.get(sc)
+        if support is None:
+            raise ConfigError("pose.scoring must be one of 'inliers', 'combined', 'similarity', 'combined_similarity', "
+                              f"'excess', 'combined_excess', got {sc!r}")
+        if sc.startswith("combined"):
             # Matching only works between similar viewpoints: penalise solutions far from the
             # reference view they came from (flips), and solutions whose box disagrees with the crop.
-            score = res.n_inliers * float(np.exp(-((rot / 35.0) ** 2))) * (0.25 + 0.75 * iou)
+            score = support * float(np.exp(-((rot / 35.0) ** 2))) * (0.25 + 0.75 * iou)
         else:
-            raise ConfigError(f"pose.scoring must be 'inliers' or 'combined', got {self.cfg.pose.scoring!r}")
-        return Hypothesis(T, score, res.n_inliers, res.n_correspondences, v, r, rot, iou)
+            score = support
+        return Hypothesis(T, score, res.n_inliers, res.n_correspondences, v, r, rot, iou, sim_sum, sim_mean)
 
     def _nearest_view(self, T: np.ndarray) -> tuple[int, int]:
         """The paper's view selection: the view whose optical axis is closest, and its closest roll."""
@@ -287,16 +317,18 @@ class PoseEstimator:
         k = self._pair_index.get((v, ref_roll))
         if k is None:
             return hyps
-        p2s, p3s = [], []
+        p2s, p3s, scs = [], [], []
         for e in self.encodings:
             m = self.matcher.match_many(qf, self.matcher.prepare_refs([self._banks[e].features[k]]))[0]
-            p2, p3 = lift(qf.keypoints, self._xyz[e][k], m.idx_q, m.idx_r)
+            p2, p3, sc = self._lift(qf, e, k, m)
             if len(p2):
                 p2s.append(crop.to_original(p2))
                 p3s.append(p3)
+                scs.append(sc)
         if not p2s:
             return hyps
-        new = self._solve({(v, r): (np.concatenate(p2s), np.concatenate(p3s))}, K, box, self._px_scale(crop))
+        new = self._solve({(v, r): (np.concatenate(p2s), np.concatenate(p3s), np.concatenate(scs))}, K, box,
+                          self._px_scale(crop))
         return sorted(hyps + new, key=lambda h: -h.score)
 
     def _result(self, hyps: list[Hypothesis], box, K, timings) -> PoseResult:
