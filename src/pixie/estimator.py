@@ -83,7 +83,7 @@ class PoseEstimator:
     """
 
     def __init__(self, refs: ReferenceSet, config: PixieConfig | None = None, matcher=None):
-        from pixie.matching import get_matcher, unpack_features
+        from pixie.matching import matcher_from_config, unpack_features
 
         self.refs = refs
         self.cfg = config or PixieConfig()
@@ -92,12 +92,7 @@ class PoseEstimator:
             raise ConfigError(f"pose.threshold_space must be 'image' or 'crop', got {self.cfg.pose.threshold_space!r}")
         if m.in_plane not in ("reference", "query"):
             raise ConfigError(f"match.in_plane must be 'reference' or 'query', got {m.in_plane!r}")
-        window = None if m.window is None else m.window * refs.size
-        self.matcher = matcher or get_matcher(
-            m.matcher, device=m.device, weights=m.weights_dir, max_keypoints=m.max_keypoints,
-            **({"window": window} if m.matcher.endswith("-nn") else {}),
-            **({"detection_threshold": m.detection_threshold} if m.detection_threshold is not None else {}),
-        )
+        self.matcher = matcher or matcher_from_config(m, refs.size)
         self.encodings = [e for e in self.cfg.refs.encodings if e in refs.config.encodings] or refs.config.encodings
         if not refs.has_features(self.matcher.name, self.encodings):
             log.warning("reference set has no %s features for %s: extracting them now", self.matcher.name, self.encodings)

@@ -1336,3 +1336,18 @@ def get_matcher(
     if options.get("max_keypoints") is None:
         options["max_keypoints"] = 1024
     return factory(name, resolve_device(device), weights, allow_download, **options)
+
+
+def matcher_from_config(match_cfg: Any, ref_size: int) -> Matcher:
+    """The matcher described by a :class:`pixie.config.MatchConfig`.
+
+    ``match_cfg.window`` is a fraction of the reference image side ``ref_size``; NN backends get it
+    in pixels. This is the one place where configs become matchers (estimator, runner, CLI).
+    """
+    opts: dict[str, Any] = {}
+    if match_cfg.matcher.endswith("-nn"):
+        opts["window"] = None if match_cfg.window is None else match_cfg.window * ref_size
+    if match_cfg.detection_threshold is not None:
+        opts["detection_threshold"] = match_cfg.detection_threshold
+    return get_matcher(match_cfg.matcher, device=match_cfg.device, weights=match_cfg.weights_dir,
+                       max_keypoints=match_cfg.max_keypoints, **opts)

@@ -28,15 +28,10 @@ def refs_key(mesh: Mesh, cfg: PixieConfig) -> str:
 
 
 def make_matcher(cfg: PixieConfig, size: int | None = None):
-    """The matcher of ``cfg.match`` (window converted from a fraction of the reference size to px)."""
-    from pixie.matching import get_matcher
+    """The matcher of ``cfg.match`` for references of side ``size`` (default ``cfg.refs.size``)."""
+    from pixie.matching import matcher_from_config
 
-    m = cfg.match
-    size = size or cfg.refs.size
-    opts = {"window": None if m.window is None else m.window * size} if m.matcher.endswith("-nn") else {}
-    if m.detection_threshold is not None:
-        opts["detection_threshold"] = m.detection_threshold
-    return get_matcher(m.matcher, device=m.device, weights=m.weights_dir, max_keypoints=m.max_keypoints, **opts)
+    return matcher_from_config(cfg.match, size or cfg.refs.size)
 
 
 def cached_reference_set(mesh: Mesh, cfg: PixieConfig, cache_dir: str | Path, matcher=None,
