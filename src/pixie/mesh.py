@@ -43,6 +43,7 @@ class Mesh:
     name: str = "mesh"
     source_hash: str = ""
     _diameter: float | None = field(default=None, repr=False)
+    _corner_normals: np.ndarray | None = field(default=None, repr=False)
 
     @property
     def bbox_min(self) -> np.ndarray:
@@ -73,6 +74,20 @@ class Mesh:
     def bounding_radius(self) -> float:
         """Radius of the sphere about ``center`` that contains every vertex, mm."""
         return float(np.linalg.norm(self.vertices - self.center, axis=1).max())
+
+    def corner_normals(self, crease_deg: float = 30.0) -> np.ndarray:
+        """Per-corner normals (F, 3, 3) that are smooth across gentle edges and sharp across creases.
+
+        Each face corner averages (area-weighted) the normals of the faces around its vertex that are
+        within ``crease_deg`` of its own face, so planar CAD faces stay flat while scanned, finely
+        tessellated surfaces stay smooth.
+        """
+        if self._corner_normals is None or crease_deg != 30.0:
+            cn = _corner_normals(self.vertices, self.faces, crease_deg)
+            if crease_deg != 30.0:
+                return cn
+            self._corner_normals = cn
+        return self._corner_normals
 
     def to_trimesh(self):
         import trimesh
@@ -201,6 +216,29 @@ def _vertex_normals(v: np.ndarray, f: np.ndarray, area: np.ndarray) -> np.ndarra
         np.add.at(vn, f[:, k], fn)
     norm = np.linalg.norm(vn, axis=1, keepdims=True)
     return np.where(norm > 0, vn / np.maximum(norm, 1e-30), 0.0)
+
+
+def _corner_normals(v: np.ndarray, f: np.ndarray, crease_deg: float) -> np.ndarray:
+    tri = v[f]
+    fn_w = np.cross(tri[:, 1] - tri[:, 0], tri[:, 2] - tri[:, 0])  # length = 2 * area
+    fn = fn_w / np.maximum(np.linalg.norm(fn_w, axis=1, keepdims=True), 1e-30)
+    corner_v = f.ravel()
+    corner_f = np.repeat(np.arange(len(f)), 3)
+    order = np.argsort(corner_v, kind="stable")
+    sv = corner_v[order]
+    starts = np.flatnonzero(np.r_[True, sv[1:] != sv[:-1]])
+    counts = np.diff(np.r_[starts, len(sv)])
+    start_of = np.repeat(starts, counts)  # group start of each sorted corner
+    size_of = np.repeat(counts, counts)
+    a = np.repeat(np.arange(len(sv)), size_of)  # every ordered pair of corners sharing a vertex
+    b = np.repeat(start_of, size_of) + (np.arange(len(a)) - np.repeat(np.cumsum(size_of) - size_of, size_of))
+    fa, fb = corner_f[order[a]], corner_f[order[b]]
+    keep = np.einsum("ij,ij->i", fn[fa], fn[fb]) >= np.cos(np.radians(crease_deg))
+    out = np.zeros((len(corner_v), 3))
+    np.add.at(out, order[a[keep]], fn_w[fb[keep]])
+    norm = np.linalg.norm(out, axis=1, keepdims=True)
+    out = np.where(norm > 0, out / np.maximum(norm, 1e-30), fn[corner_f])
+    return out.reshape(len(f), 3, 3)
 
 
 def face_normals(mesh: Mesh) -> np.ndarray:

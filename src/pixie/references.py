@@ -18,6 +18,7 @@ import os
 import tempfile
 import time
 import zipfile
+import zlib
 from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Callable
@@ -337,7 +338,7 @@ def load_reference_set(path: str | Path, mesh: Mesh | None = None) -> ReferenceS
     try:
         with np.load(path, allow_pickle=False) as z:
             data = {k: z[k] for k in z.files}
-    except (zipfile.BadZipFile, ValueError, OSError, EOFError) as exc:
+    except (zipfile.BadZipFile, zlib.error, ValueError, OSError, EOFError) as exc:
         raise ReferenceSetError(f"reference set {path} is corrupt or not a pixie file: {exc}") from exc
     if "meta" not in data:
         raise ReferenceSetError(f"{path} is not a pixie reference set (no metadata)")

@@ -44,10 +44,13 @@ class Renderer:
     ----------
     mesh : Mesh
     smooth_normals : bool
-        Interpolate vertex normals (True) or use flat face normals (False).
+        Interpolate per-corner normals (True; smooth across edges gentler than ``crease_deg``, sharp
+        across creases) or use flat face normals (False).
+    crease_deg : float
+        Dihedral angle above which an edge is a crease that normals are not averaged across.
     """
 
-    def __init__(self, mesh: Mesh, smooth_normals: bool = True):
+    def __init__(self, mesh: Mesh, smooth_normals: bool = True, crease_deg: float = 30.0):
         from embreex import rtcore_scene
         from embreex.mesh_construction import TriangleMesh
 
@@ -62,7 +65,7 @@ class Renderer:
         self._fn = face_normals(mesh)
         # Plane of each face: n . x = offset (float64, for exact hit points).
         self._offset = np.einsum("ij,ij->i", self._fn, mesh.vertices[mesh.faces[:, 0]])
-        self._vn32 = mesh.vertex_normals.astype(np.float32)
+        self._cn32 = mesh.corner_normals(crease_deg).astype(np.float32) if smooth_normals else None
 
     def render(
         self,
@@ -119,12 +122,8 @@ class Renderer:
         p_obj = origin + t[:, None] * d_hit  # d_cam has z = 1, so t is the z-depth
         if self.smooth_normals:
             bu, bv = hit["u"][ok], hit["v"][ok]
-            f = self.mesh.faces[prim]
-            nrm = (
-                (1 - bu - bv)[:, None] * self._vn32[f[:, 0]]
-                + bu[:, None] * self._vn32[f[:, 1]]
-                + bv[:, None] * self._vn32[f[:, 2]]
-            )
+            cn = self._cn32[prim]
+            nrm = (1 - bu - bv)[:, None] * cn[:, 0] + bu[:, None] * cn[:, 1] + bv[:, None] * cn[:, 2]
             bad = np.einsum("ij,ij->i", nrm, nrm) < 1e-12
             nrm[bad] = n[bad]
         else:
