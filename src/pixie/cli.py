@@ -158,7 +158,7 @@ def build_parser() -> argparse.ArgumentParser:
     b.add_argument("-o", "--output", required=True, help="output .npz")
     b.add_argument("--views", type=int, help="total views: 6 canonical + Fibonacci (default 121)")
     b.add_argument("--rotations", type=int, help="in-plane rolls per view (default 8)")
-    b.add_argument("--size", type=int, help="reference image side in px (default 512)")
+    b.add_argument("--size", type=int, help="reference image side in px (default 256)")
     b.add_argument("--units", default="mm", choices=["mm", "cm", "m", "auto"], help="units of the mesh file")
     b.add_argument("--encodings", help="comma-separated encodings (default shade3_edges,depth,normal)")
     b.add_argument("--matcher", help="features to store (default: config match.matcher; 'none' for none)")

@@ -24,7 +24,7 @@ class RefsConfig:
     n_fibonacci: int = 115  # + 6 canonical box-aligned views = 121
     canonical: bool = True
     rotations: int = 8  # in-plane rotations, 360/rotations degrees apart (45°)
-    size: int = 512  # side of the square, object-centred reference images, px
+    size: int = 256  # side of the square, object-centred reference images, px (512 measured no better on LM-O, 6x the build)
     focal_factor: float = 4.0  # K_start focal = focal_factor * size (a long lens: weak perspective like far-away objects)
     crop_pad: float = 1.2  # square crop side = pad * max(bbox w, h) of the object's projection
     encodings: list[str] = field(default_factory=lambda: ["shade3_edges", "depth", "normal"])
@@ -48,7 +48,7 @@ class MatchConfig:
     matcher: str = "aliked-nn"
     max_keypoints: int = 1024
     detection_threshold: float | None = 0.0  # <= 0: keep the max_keypoints strongest (ALIKED's own 0.2 leaves ~10-100 on LM-O crops); None: backend default
-    window: float | None = 0.125  # spatial window for NN matchers, fraction of refs.size (64 px at 512)
+    window: float | None = 0.125  # spatial window for NN matchers, fraction of refs.size (32 px at 256)
     in_plane: str = "reference"  # 'reference': rotated references (features precomputed); 'query': rotate the query crop
     weights_dir: str | None = None
     device: str = "cpu"

@@ -24,7 +24,7 @@ REPO = Path(__file__).resolve().parents[2]
 LMO = REPO.parent / "shared" / "data" / "lmo_dev" / "lmo"
 # The demo keeps the reference build short on a laptop CPU: the configuration measured in
 # bench/RESULTS.md (256 px, shading + edges, features of roll 0 only, the query rotated instead).
-DEMO_OVERRIDES = ["refs.size=256", "refs.encodings=[shade3_edges]", "refs.feature_rolls=first", "match.in_plane=query"]
+DEMO_OVERRIDES = ["refs.encodings=[shade3_edges]", "refs.feature_rolls=first", "match.in_plane=query"]
 
 
 def generated_part() -> Mesh:

@@ -1,0 +1,118 @@
+"""Lifting, PnP + RANSAC (OpenCV and PoseLib) and the box-based depth correction, on synthetic data."""
+
+from __future__ import annotations
+
+import importlib.util
+
+import numpy as np
+import pytest
+
+from pixie.camera import make_K, make_T, project, rotation_angle_deg, transform_points
+from pixie.errors import ConfigError
+from pixie.pose import box_iou, depth_from_box, lift, projected_box, rotation_consistency, solve_pnp_ransac
+
+K = make_K(600.0, 600.0, 319.5, 239.5)
+HAS_POSELIB = importlib.util.find_spec("poselib") is not None
+
+
+def _correspondences(mesh, T, n=300, outlier_frac=0.4, noise_px=0.5, seed=0):
+    """2D–3D pairs: surface points projected with noise, a fraction replaced by random image points."""
+    rng = np.random.default_rng(seed)
+    X = mesh.sample_points(n, seed=seed)
+    uv = project(K, transform_points(T, X)) + rng.normal(0.0, noise_px, (n, 2))
+    n_out = int(round(outlier_frac * n))
+    out = rng.choice(n, n_out, replace=False)
+    uv[out] = rng.uniform([0, 0], [640, 480], (n_out, 2))
+    is_in = np.ones(n, bool)
+    is_in[out] = False
+    return uv, X, is_in
+
+
+def _errors(T_est, T_true):
+    return rotation_angle_deg(T_est[:3, :3], T_true[:3, :3]), float(np.linalg.norm(T_est[:3, 3] - T_true[:3, 3]))
+
+
+SOLVERS = ["opencv", pytest.param("poselib", marks=pytest.mark.skipif(not HAS_POSELIB, reason="poselib missing"))]
+
+
+@pytest.mark.parametrize("solver", SOLVERS)
+@pytest.mark.parametrize("seed", [0, 1, 2])
+def test_pnp_recovers_pose_with_outliers(proc_mesh, make_pose, solver, seed):
+    T = make_pose(proc_mesh, 100 + seed, distance_factor=5.0, offset_px=100)
+    uv, X, is_in = _correspondences(proc_mesh, T, seed=seed)
+    res = solve_pnp_ransac(uv, X, K, iterations=1000, threshold_px=5.0, solver=solver, seed=seed)
+    assert res.ok, "PnP failed on an easy problem"
+    rot, trans = _errors(res.T_cam_from_obj, T)
+    assert rot < 0.5, f"rotation error {rot:.3f} deg"
+    assert trans < 1.0, f"translation error {trans:.3f} mm"
+    inl = np.zeros(len(uv), bool)
+    inl[res.inliers] = True
+    assert res.n_correspondences == len(uv)
+    # every true inlier is found (noise 0.5 px << 5 px); outliers land within 5 px only by chance
+    assert inl[is_in].mean() > 0.98
+    assert inl[~is_in].mean() < 0.05
+    assert res.reprojection_rmse < 1.5
+    assert 0.55 < res.inlier_ratio < 0.65
+
+
+@pytest.mark.parametrize("solver", SOLVERS)
+def test_pnp_fails_cleanly(proc_mesh, make_pose, solver):
+    T = make_pose(proc_mesh, 7, distance_factor=5.0)
+    uv, X, _ = _correspondences(proc_mesh, T, n=5, outlier_frac=0.0)
+    res = solve_pnp_ransac(uv, X, K, solver=solver)
+    assert not res.ok and res.T_cam_from_obj is None and res.n_inliers == 0
+    assert res.n_correspondences == 5
+    none = solve_pnp_ransac(np.zeros((0, 2)), np.zeros((0, 3)), K, solver=solver)
+    assert not none.ok
+    # pure noise: no consistent pose
+    rng = np.random.default_rng(3)
+    uv = rng.uniform([0, 0], [640, 480], (200, 2))
+    X = proc_mesh.sample_points(200, seed=4)
+    res = solve_pnp_ransac(uv, X, K, solver=solver)  # default min_inliers=6
+    assert not res.ok, f"a pose from pure noise with {res.n_inliers} inliers"
+
+
+def test_pnp_unknown_solver(proc_mesh, make_pose):
+    T = make_pose(proc_mesh, 0)
+    uv, X, _ = _correspondences(proc_mesh, T, n=50, outlier_frac=0.0)
+    with pytest.raises(ConfigError, match="solver"):
+        solve_pnp_ransac(uv, X, K, solver="magic")
+
+
+def test_lift_drops_nan_xyz():
+    kq = np.array([[10.0, 20.0], [30.0, 40.0], [50.0, 60.0], [70.0, 80.0]])
+    xyz = np.array([[1.0, 2.0, 3.0], [np.nan, np.nan, np.nan], [4.0, 5.0, 6.0], [7.0, np.nan, 9.0]])
+    idx_q = np.array([3, 2, 1, 0])
+    idx_r = np.array([0, 1, 2, 3])
+    p2, p3 = lift(kq, xyz, idx_q, idx_r)
+    np.testing.assert_array_equal(p2, [[70.0, 80.0], [30.0, 40.0]])
+    np.testing.assert_array_equal(p3, [[1.0, 2.0, 3.0], [4.0, 5.0, 6.0]])
+    assert p2.dtype == np.float64 and p3.dtype == np.float64
+    e2, e3 = lift(kq, xyz, np.zeros(0, int), np.zeros(0, int))
+    assert e2.shape == (0, 2) and e3.shape == (0, 3)
+
+
+@pytest.mark.parametrize("scale", [1.3, 1 / 1.3])
+def test_depth_from_box_restores_distance(proc_mesh, make_pose, scale):
+    for seed in range(3):
+        T = make_pose(proc_mesh, 50 + seed, distance_factor=6.0, offset_px=80)
+        pts = proc_mesh.vertices
+        box = projected_box(T, K, pts)
+        wrong = T.copy()
+        wrong[:3, 3] *= scale
+        fixed = depth_from_box(wrong, K, pts, box)
+        err = np.linalg.norm(fixed[:3, 3] - T[:3, 3]) / np.linalg.norm(T[:3, 3])
+        assert err < 0.01, f"seed {seed}: translation still {100 * err:.2f}% off"
+        np.testing.assert_allclose(fixed[:3, :3], T[:3, :3])
+        assert box_iou(projected_box(fixed, K, pts), box) > 0.97
+    # a degenerate observed box leaves the pose unchanged
+    np.testing.assert_array_equal(depth_from_box(wrong, K, pts, np.array([10.0, 10.0, 10.0, 50.0])), wrong)
+
+
+def test_box_iou_and_rotation_consistency():
+    a = np.array([0.0, 0.0, 10.0, 10.0])
+    assert box_iou(a, a) == pytest.approx(1.0)
+    assert box_iou(a, np.array([5.0, 0.0, 15.0, 10.0])) == pytest.approx(50 / 150)
+    assert box_iou(a, np.array([20.0, 20.0, 30.0, 30.0])) == 0.0
+    Rz = np.array([[0.0, -1.0, 0.0], [1.0, 0.0, 0.0], [0.0, 0.0, 1.0]])
+    assert rotation_consistency(make_T(Rz, [0, 0, 500]), make_T(np.eye(3), [0, 0, 400])) == pytest.approx(90.0)
