@@ -269,11 +269,6 @@ def test_default_normals_match_finite_differences_on_planar_faces(proc_mesh, K64
         assert np.median(ang) < 5.0, f"median angle {np.median(ang):.1f} deg on planar faces"
 
 
-@pytest.mark.xfail(
-    strict=True,
-    reason="pixie bug: load_mesh keeps STL's unshared vertices (process=False) and corner normals are found "
-    "through shared vertex indices, so the same part is faceted from STL and smooth from PLY",
-)
 def test_normals_do_not_depend_on_the_file_format(proc_trimesh, tmp_path, K640):
     rendered = {}
     for ext in ("ply", "stl"):

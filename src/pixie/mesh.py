@@ -163,6 +163,9 @@ def load_mesh(path: str | Path, units: str = "mm") -> Mesh:
         raise MeshError(f"cannot read mesh {path}: {type(exc).__name__}: {exc}") from exc
     if not isinstance(loaded, trimesh.Trimesh):
         raise MeshError(f"{path} holds no triangle mesh (got {type(loaded).__name__})")
+    # STL (and some OBJ/GLB exports) repeat every vertex per face: weld equal positions so that
+    # smooth normals and adjacency do not depend on the file format.
+    loaded.merge_vertices(merge_tex=True, merge_norm=True)
     return _finish(
         np.asarray(loaded.vertices, dtype=np.float64),
         np.asarray(loaded.faces),
