@@ -165,7 +165,8 @@ def load_mesh(path: str | Path, units: str = "mm") -> Mesh:
         raise MeshError(f"{path} holds no triangle mesh (got {type(loaded).__name__})")
     # STL (and some OBJ/GLB exports) repeat every vertex per face: weld equal positions so that
     # smooth normals and adjacency do not depend on the file format.
-    loaded.merge_vertices(merge_tex=True, merge_norm=True)
+    if len(loaded.vertices) and np.all(np.isfinite(loaded.vertices)):  # NaNs are reported below
+        loaded.merge_vertices(merge_tex=True, merge_norm=True)
     return _finish(
         np.asarray(loaded.vertices, dtype=np.float64),
         np.asarray(loaded.faces),
