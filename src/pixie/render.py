@@ -102,7 +102,7 @@ class Renderer:
         d_cam = np.stack([(u - K[0, 2]) / K[0, 0], (v - K[1, 2]) / K[1, 1], np.ones_like(u)], axis=1)
         T_obj = invert_T(T)
         R_oc, origin = T_obj[:3, :3], T_obj[:3, 3]
-        d_obj = d_cam @ R_oc.T
+        d_obj = np.einsum("ij,kj->ik", d_cam, R_oc)  # tall-thin product: einsum avoids slow multi-threaded BLAS
         hit = self._scene.run(
             np.broadcast_to(origin.astype(np.float32), d_obj.shape).copy(),
             d_obj.astype(np.float32),
@@ -128,7 +128,7 @@ class Renderer:
             nrm[bad] = n[bad]
         else:
             nrm = n.astype(np.float32)
-        nrm_cam = nrm @ T[:3, :3].T.astype(np.float32)
+        nrm_cam = np.einsum("ij,kj->ik", nrm, T[:3, :3].astype(np.float32))
         nrm_cam /= np.maximum(np.sqrt(np.einsum("ij,ij->i", nrm_cam, nrm_cam))[:, None], 1e-30)
         facing = np.einsum("ij,ij->i", nrm_cam, d_cam[ok].astype(np.float32)) > 0  # pointing away
         nrm_cam[facing] *= -1
