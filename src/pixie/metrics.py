@@ -20,6 +20,7 @@ from typing import Sequence
 
 import numpy as np
 
+from pixie.camera import project, rotation_angle_deg
 from pixie.datasets import orthonormalize
 
 # BOP'19 threshold sets.
@@ -102,20 +103,20 @@ def mssd(T_est: np.ndarray, T_gt: np.ndarray, pts: np.ndarray, syms: np.ndarray 
     syms : (S, 4, 4) symmetry transforms, identity included; None = asymmetric
     """
     p_est = _apply(T_est, pts)
-    poses = _sym_gt_poses(T_gt, syms)
-    step = max(1, _CHUNK // max(len(pts), 1))
     best = math.inf
-    for i in range(0, len(poses), step):
-        P = poses[i : i + step]
-        p_gt = np.einsum("nj,sij->sni", pts, P[:, :3, :3]) + P[:, None, :3, 3]
+    for p_gt in _sym_gt_points(T_gt, syms, pts):
         d = np.sqrt(((p_gt - p_est[None]) ** 2).sum(-1)).max(axis=1)
         best = min(best, float(d.min()))
     return best
 
 
-def _project(K: np.ndarray, X: np.ndarray) -> np.ndarray:
-    uvw = X @ K.T
-    return uvw[..., :2] / uvw[..., 2:3]
+def _sym_gt_points(T_gt: np.ndarray, syms: np.ndarray | None, pts: np.ndarray):
+    """Model points under the GT pose composed with each symmetry, in chunks of shape (s, N, 3)."""
+    poses = _sym_gt_poses(T_gt, syms)
+    step = max(1, _CHUNK // max(len(pts), 1))
+    for i in range(0, len(poses), step):
+        P = poses[i : i + step]
+        yield np.einsum("nj,sij->sni", pts, P[:, :3, :3]) + P[:, None, :3, 3]
 
 
 def mspd(
@@ -131,14 +132,10 @@ def mspd(
     X_est = _apply(T_est, pts)
     if np.any(X_est[:, 2] <= 1e-9):
         return math.inf
-    uv_est = _project(K, X_est)
-    poses = _sym_gt_poses(T_gt, syms)
-    step = max(1, _CHUNK // max(len(pts), 1))
+    uv_est = project(K, X_est)
     best = math.inf
-    for i in range(0, len(poses), step):
-        P = poses[i : i + step]
-        X_gt = np.einsum("nj,sij->sni", pts, P[:, :3, :3]) + P[:, None, :3, 3]
-        uv_gt = _project(K, X_gt)
+    for X_gt in _sym_gt_points(T_gt, syms, pts):
+        uv_gt = project(K, X_gt)
         d = np.sqrt(((uv_gt - uv_est[None]) ** 2).sum(-1)).max(axis=1)
         best = min(best, float(d.min()))
     return best
@@ -146,8 +143,7 @@ def mspd(
 
 def rotation_error_deg(T_est: np.ndarray, T_gt: np.ndarray) -> float:
     """Geodesic angle between the two rotations, degrees."""
-    c = (np.trace(T_est[:3, :3].T @ T_gt[:3, :3]) - 1.0) / 2.0
-    return float(np.degrees(np.arccos(np.clip(c, -1.0, 1.0))))
+    return rotation_angle_deg(T_est[:3, :3], T_gt[:3, :3])
 
 
 def translation_error(T_est: np.ndarray, T_gt: np.ndarray) -> float:
