@@ -130,6 +130,50 @@ def test_workers_give_the_same_set(refs_plain, proc_mesh, small_cfg):
     np.testing.assert_array_equal(par.encodings["shade3_edges"], refs_plain.encodings["shade3_edges"])
 
 
+@pytest.fixture
+def render_count(monkeypatch) -> dict[str, int]:
+    """Counts the renders of reference builds (the renderer they use counts its calls)."""
+    count = {"renders": 0}
+
+    class CountingRenderer(Renderer):
+        def render(self, *args, **kwargs):
+            count["renders"] += 1
+            return super().render(*args, **kwargs)
+
+    monkeypatch.setattr("pixie.references.Renderer", CountingRenderer)
+    return count
+
+
+@pytest.mark.parametrize(
+    "feature_rolls, store_rotated, renders",
+    [("all", False, V), ("first", False, V), ("all", True, V * R), ("first", True, V * R)],
+)
+def test_build_without_matcher_renders_only_what_it_keeps(proc_mesh, render_count, feature_rolls,
+                                                           store_rotated, renders):
+    """Without a matcher, rolls 1..R-1 are rendered only when their encodings are stored."""
+    cfg = RefsConfig(**SMALL, feature_rolls=feature_rolls, store_rotated_encodings=store_rotated)
+    build_reference_set(proc_mesh, cfg)
+    assert render_count["renders"] == renders
+
+
+def test_build_with_matcher_renders_the_rolls_it_extracts(proc_mesh, sift, render_count):
+    build_reference_set(proc_mesh, RefsConfig(**SMALL, feature_rolls="first"), matcher=sift)
+    assert render_count["renders"] == V
+    refs = build_reference_set(proc_mesh, RefsConfig(**SMALL, feature_rolls="all"))
+    render_count["renders"] = 0
+    add_features(refs, sift)
+    assert render_count["renders"] == V * R
+
+
+def test_build_without_matcher_stores_what_a_full_render_stores(refs_plain, proc_mesh, small_cfg):
+    """Rendering roll 0 only changes nothing stored: compare with a build that renders every roll."""
+    full = build_reference_set(proc_mesh, RefsConfig(**{**small_cfg.__dict__, "store_rotated_encodings": True}))
+    assert full.encodings["shade3_edges"].shape == (V, R, S, S)
+    for name in ("poses", "Ks", "K_start", "canonical", "depth", "normals"):
+        np.testing.assert_array_equal(getattr(refs_plain, name), getattr(full, name), err_msg=name)
+    np.testing.assert_array_equal(refs_plain.encodings["shade3_edges"], full.encodings["shade3_edges"][:, 0])
+
+
 def test_lifting_is_exact(refs_plain, proc_mesh):
     """keypoint_xyz_from_depth returns the rendered XYZ of the keypoint's nearest pixel."""
     rng = np.random.default_rng(0)

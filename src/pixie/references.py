@@ -142,7 +142,8 @@ def build_reference_set(
     enc_store: dict[str, list] = {e: [] for e in encs}
     feats: dict[str, list] = {e: [] for e in encs}
     xyzs: dict[str, list] = {e: [] for e in encs}
-    for i, view in enumerate(_iter_rendered_views(mesh, cfg, base, K0, workers)):
+    n_render = rolls_to_render(cfg, features=matcher is not None, images=cfg.store_rotated_encodings)
+    for i, view in enumerate(_iter_rendered_views(mesh, cfg, base, K0, workers, n_render)):
         poses[i], Ks[i] = view["poses"], view["Ks"]
         depth[i], normals[i] = view["depth"][0], view["normals0"]
         for e in encs:
@@ -180,20 +181,50 @@ def _store_features(refs: ReferenceSet, matcher_name: str, feats: dict, xyzs: di
 _WORKER_STATE: dict = {}
 
 
+def rolls_to_render(cfg: RefsConfig, features: bool, images: bool) -> int:
+    """How many rolls of each view must be rendered: all of them, or only roll 0.
+
+    Roll 0 is always rendered (its depth and normals are stored). The other rolls are rendered only
+    when their images are used: to extract features of every roll, or to store their encodings.
+    Poses and intrinsics of every roll are computed either way.
+
+    Parameters
+    ----------
+    cfg : RefsConfig
+    features : bool
+        Matcher features are extracted (of every roll when ``cfg.feature_rolls == 'all'``).
+    images : bool
+        The encodings of every roll are kept.
+
+    Returns
+    -------
+    int
+        ``cfg.rotations`` (at least 1) or 1.
+    """
+    n_rolls = max(int(cfg.rotations), 1)
+    return n_rolls if images or (features and cfg.feature_rolls == "all") else 1
+
+
 def _render_view(mesh: Mesh, cfg: RefsConfig, T_base: np.ndarray, K0: np.ndarray,
-                 renderer: Renderer | None = None) -> dict:
-    """Render and encode every roll of one view (runs in a worker process)."""
+                 renderer: Renderer | None = None, n_render: int | None = None) -> dict:
+    """Pose every roll of one view and render and encode the first ``n_render`` (runs in a worker process).
+
+    Returns
+    -------
+    dict
+        ``poses`` (R, 4, 4) and ``Ks`` (R, 3, 3) of all R rolls; ``depth`` (n_render, S, S),
+        ``normals0`` (S, S, 3) of roll 0 and ``enc`` name -> (n_render, S, S[, 3]) of the rendered rolls.
+    """
     renderer = renderer or Renderer(mesh, smooth_normals=cfg.smooth_normals)
     S, R = int(cfg.size), max(int(cfg.rotations), 1)
-    out = {"poses": np.zeros((R, 4, 4)), "Ks": np.zeros((R, 3, 3)), "depth": np.zeros((R, S, S), np.float32),
+    n_render = R if n_render is None else min(max(int(n_render), 1), R)
+    out = {"poses": np.zeros((R, 4, 4)), "Ks": np.zeros((R, 3, 3)), "depth": np.zeros((n_render, S, S), np.float32),
            "enc": {e: [] for e in cfg.encodings}}
-    # Rolls other than 0 are rendered only when their features or images are kept.
-    render_all = cfg.feature_rolls == "all" or cfg.store_rotated_encodings
     for j, a in enumerate(roll_angles(R)):
         T = roll(T_base, a)
         K, box = square_crop_K(K0, T, mesh.vertices, S, cfg.crop_pad)
         out["poses"][j], out["Ks"][j] = T, K
-        if j > 0 and not render_all:
+        if j >= n_render:
             continue
         # Rays only inside the box of the projected vertices (= the silhouette's box).
         pad = (box[2] - box[2] / cfg.crop_pad) / 2 * box[3]
@@ -208,27 +239,30 @@ def _render_view(mesh: Mesh, cfg: RefsConfig, T_base: np.ndarray, K0: np.ndarray
     return out
 
 
-def _worker_init(mesh: Mesh, cfg: RefsConfig, K0: np.ndarray) -> None:
-    _WORKER_STATE.update(mesh=mesh, cfg=cfg, K0=K0, renderer=Renderer(mesh, smooth_normals=cfg.smooth_normals))
+def _worker_init(mesh: Mesh, cfg: RefsConfig, K0: np.ndarray, n_render: int | None) -> None:
+    _WORKER_STATE.update(mesh=mesh, cfg=cfg, K0=K0, n_render=n_render,
+                         renderer=Renderer(mesh, smooth_normals=cfg.smooth_normals))
 
 
 def _worker_render(T_base: np.ndarray) -> dict:
     st = _WORKER_STATE
-    return _render_view(st["mesh"], st["cfg"], T_base, st["K0"], st["renderer"])
+    return _render_view(st["mesh"], st["cfg"], T_base, st["K0"], st["renderer"], st["n_render"])
 
 
-def _iter_rendered_views(mesh: Mesh, cfg: RefsConfig, base: np.ndarray, K0: np.ndarray, workers: int):
-    """Yield the rendered views in order, from ``workers`` processes (or inline for 1)."""
+def _iter_rendered_views(mesh: Mesh, cfg: RefsConfig, base: np.ndarray, K0: np.ndarray, workers: int,
+                         n_render: int | None = None):
+    """Yield the views in order (first ``n_render`` rolls rendered), from ``workers`` processes (or inline for 1)."""
     if workers <= 1:
         renderer = Renderer(mesh, smooth_normals=cfg.smooth_normals)
         for T in base:
-            yield _render_view(mesh, cfg, T, K0, renderer)
+            yield _render_view(mesh, cfg, T, K0, renderer, n_render)
         return
     import multiprocessing as mp
     from concurrent.futures import ProcessPoolExecutor
 
     ctx = mp.get_context("fork")
-    with ProcessPoolExecutor(workers, mp_context=ctx, initializer=_worker_init, initargs=(mesh, cfg, K0)) as ex:
+    init_args = (mesh, cfg, K0, n_render)
+    with ProcessPoolExecutor(workers, mp_context=ctx, initializer=_worker_init, initargs=init_args) as ex:
         yield from ex.map(_worker_render, list(base), chunksize=1)
 
 
@@ -258,7 +292,8 @@ def add_features(refs: ReferenceSet, matcher, encodings: list[str] | None = None
     cfg = RefsConfig(**{**refs.config.__dict__, "encodings": encs})
     feats: dict[str, list] = {e: [] for e in encs}
     xyzs: dict[str, list] = {e: [] for e in encs}
-    for i, view in enumerate(_iter_rendered_views(refs.mesh, cfg, refs.poses[:, 0], refs.K_start, workers)):
+    n_render = rolls_to_render(cfg, features=True, images=False)  # only features are added
+    for i, view in enumerate(_iter_rendered_views(refs.mesh, cfg, refs.poses[:, 0], refs.K_start, workers, n_render)):
         for e in encs:
             for j in range(refs.n_rolls if refs.config.feature_rolls == "all" else 1):
                 f = matcher.extract(view["enc"][e][j], mask=view["depth"][j] > 0)
