@@ -471,6 +471,18 @@ def test_mesh_errors_name_the_problem(tmp_path, proc_trimesh):
         load_mesh(tmp_path / "flat.obj", units="furlong")
 
 
+def test_point_cloud_ply_is_named_as_one(tmp_path):
+    """A PLY with vertices but no faces is refused as a point cloud (not as 'no vertices'), naming the file."""
+    path = tmp_path / "scan_points.ply"
+    trimesh.PointCloud(np.random.default_rng(1).uniform(0, 100, (40, 3))).export(path)
+    with pytest.raises(MeshError) as info:
+        load_mesh(path)
+    msg = str(info.value)
+    assert "no triangles" in msg and "point cloud" in msg and "40 vertices" in msg
+    assert str(path) in msg
+    assert "no vertices" not in msg
+
+
 def test_from_arrays_validation():
     v = np.array([[0, 0, 0], [10, 0, 0], [10, 10, 0], [0, 10, 0]], float)
     quads = np.array([[0, 1, 2, 3]])

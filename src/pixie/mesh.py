@@ -163,6 +163,8 @@ def load_mesh(path: str | Path, units: str = "mm") -> Mesh:
         raise MeshError(f"cannot read mesh {path}: {type(exc).__name__}: {exc}") from exc
     if not isinstance(loaded, trimesh.Trimesh):
         raise MeshError(f"{path} holds no triangle mesh (got {type(loaded).__name__})")
+    if len(loaded.faces) == 0:
+        raise MeshError(_no_triangles_message(path, len(loaded.vertices)))
     # STL (and some OBJ/GLB exports) repeat every vertex per face: weld equal positions so that
     # smooth normals and adjacency do not depend on the file format.
     if len(loaded.vertices) and np.all(np.isfinite(loaded.vertices)):  # NaNs are reported below
@@ -174,6 +176,37 @@ def load_mesh(path: str | Path, units: str = "mm") -> Mesh:
         hashlib.sha256(data).hexdigest(),
         units,
     )
+
+
+def _no_triangles_message(path: Path, n_loaded: int) -> str:
+    """Why a file without triangles is refused: a point cloud (vertices only) or nothing at all.
+
+    Parameters
+    ----------
+    path : Path
+        The mesh file.
+    n_loaded : int
+        Vertices of the triangle mesh read from it (trimesh drops the points of a file without faces).
+    """
+    n = n_loaded or _count_points(path)
+    if n == 0:
+        return f"mesh file {path} has no vertices and no triangles"
+    return (f"mesh file {path} has no triangles: it is a point cloud ({n} vertices, no faces); "
+            "only triangle meshes are supported")
+
+
+def _count_points(path: Path) -> int:
+    """Vertices in a file read as it is (a point cloud or lines), 0 when it cannot be read."""
+    import trimesh
+
+    try:
+        with warnings.catch_warnings():
+            warnings.simplefilter("ignore")
+            raw = trimesh.load(path, process=False)
+    except Exception:  # the caller reports the missing triangles either way
+        return 0
+    parts = raw.geometry.values() if isinstance(raw, trimesh.Scene) else [raw]
+    return int(sum(len(getattr(g, "vertices", ())) for g in parts))
 
 
 def _finish(v: np.ndarray, f: np.ndarray, name: str, digest: str, units: str) -> Mesh:
