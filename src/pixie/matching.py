@@ -416,6 +416,42 @@ class Extractor:
     def _mask_tensor(self, mask: np.ndarray | None) -> torch.Tensor | None:
         return None if mask is None else torch.from_numpy(mask).to(self.device)
 
+    def _load_net(
+        self,
+        net: nn.Module,
+        name: str,
+        weights: WeightsArg,
+        allow_download: bool,
+        *,
+        prepare: Callable[[dict[str, Any]], Mapping[str, Any]] | None = None,
+        ignore: Sequence[str] = (),
+    ) -> nn.Module:
+        """Load the weight file ``name`` into ``net``; return ``net`` in eval mode on this extractor's device.
+
+        Parameters
+        ----------
+        net : nn.Module
+        name : str
+            Weight name (see :data:`pixie.weights.KNOWN_WEIGHTS`); error messages name it.
+        weights : WeightsArg
+            Explicit location (see :func:`_weights_for`); else the search of :func:`pixie.weights.resolve_weights`.
+        allow_download : bool
+        prepare : callable, optional
+            Turns the loaded checkpoint into the network's state dict (unwrap, strip key prefixes).
+        ignore : sequence of str
+            Entries the network has but the file may lack (derived buffers).
+
+        Raises
+        ------
+        WeightsError
+            When the file is not found or unreadable, or does not fit the network.
+        """
+        state = _load_weights(name, weights, allow_download)
+        if prepare is not None:
+            state = prepare(state)
+        _load_strict(net, state, name, ignore=ignore, stacklevel=4)
+        return net.eval().to(self.device)
+
 
 def _kornia_feature() -> Any:
     import kornia.feature as KF
@@ -423,10 +459,15 @@ def _kornia_feature() -> Any:
     return KF
 
 
+def _load_weights(name: str, weights: WeightsArg, allow_download: bool) -> dict[str, Any]:
+    """The state dict of weight ``name``: resolved (``weights`` first) and read with ``weights_only=True``."""
+    return load_state_dict(name, _weights_for(weights, name, primary=True), allow_download=allow_download)
+
+
 def _load_strict(
-    module: nn.Module, state: Mapping[str, torch.Tensor], what: str, ignore: Sequence[str] = ()
+    module: nn.Module, state: Mapping[str, torch.Tensor], what: str, ignore: Sequence[str] = (), stacklevel: int = 3
 ) -> None:
-    """Load ``state`` into ``module``.
+    """Load ``state`` into ``module``; unused entries are warned about at ``stacklevel``.
 
     Raises
     ------
@@ -450,7 +491,7 @@ def _load_strict(
         warnings.warn(
             f"{what}: ignoring {len(extra)} weight entries the network does not use "
             f"({', '.join(extra[:5])}{', ...' if len(extra) > 5 else ''})",
-            stacklevel=3,
+            stacklevel=stacklevel,
         )
 
 
@@ -481,10 +522,8 @@ class AlikedExtractor(Extractor):
             raise ConfigError(f"unknown ALIKED model {model!r}; choose one of {', '.join(ALIKED_MODELS)}")
         KF = _kornia_feature()
         threshold = 0.2 if detection_threshold is None else float(detection_threshold)
-        self.net = KF.ALIKED(model_name=model, max_num_keypoints=int(max_keypoints), detection_threshold=threshold)
-        state = load_state_dict(model, _weights_for(weights, model, primary=True), allow_download=allow_download)
-        _load_strict(self.net, state, model, ignore=("dkd.hw_grid",))  # a derived buffer
-        self.net.eval().to(device)
+        net = KF.ALIKED(model_name=model, max_num_keypoints=int(max_keypoints), detection_threshold=threshold)
+        self.net = self._load_net(net, model, weights, allow_download, ignore=("dkd.hw_grid",))  # a derived buffer
         self.dim = int(self.net.desc_head.sf_conv.out_channels)
 
     def _extract(self, rgb: np.ndarray, mask: np.ndarray | None) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
@@ -521,12 +560,7 @@ class DiskExtractor(Extractor):
         KF = _kornia_feature()
         self.max_keypoints = int(max_keypoints)
         self.threshold = 0.0 if detection_threshold is None else float(detection_threshold)
-        self.net = KF.DISK()
-        state = load_state_dict("disk_depth", _weights_for(weights, "disk_depth", primary=True),
-                                allow_download=allow_download)
-        state = state.get("extractor", state)
-        _load_strict(self.net, state, "disk_depth")
-        self.net.eval().to(device)
+        self.net = self._load_net(KF.DISK(), "disk_depth", weights, allow_download, prepare=_disk_state)
 
     def _extract(self, rgb: np.ndarray, mask: np.ndarray | None) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
         x = _image_tensor(rgb, self.device)
@@ -578,10 +612,7 @@ class XFeatExtractor(Extractor):
         KF = _kornia_feature()
         self.max_keypoints = int(max_keypoints)
         self.threshold = 0.05 if detection_threshold is None else float(detection_threshold)
-        self.net = KF.XFeatModel()
-        state = load_state_dict("xfeat", _weights_for(weights, "xfeat", primary=True), allow_download=allow_download)
-        _load_strict(self.net, state, "xfeat")
-        self.net.eval().to(device)
+        self.net = self._load_net(KF.XFeatModel(), "xfeat", weights, allow_download)
 
     def _extract(self, rgb: np.ndarray, mask: np.ndarray | None) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
         x = _image_tensor(rgb, self.device)
@@ -703,12 +734,7 @@ class SuperPointExtractor(Extractor):
         self.max_keypoints = int(max_keypoints)
         self.threshold = 0.0005 if detection_threshold is None else float(detection_threshold)
         self.nms_radius, self.border = int(nms_radius), int(border)
-        self.net = SuperPointNet()
-        state = load_state_dict("superpoint", _weights_for(weights, "superpoint", primary=True),
-                                allow_download=allow_download)
-        state = _strip_prefixes(_unwrap_state(state), ("module.", "extractor.", "net."))
-        _load_strict(self.net, state, "superpoint")
-        self.net.eval().to(device)
+        self.net = self._load_net(SuperPointNet(), "superpoint", weights, allow_download, prepare=_superpoint_state)
 
     def _extract(self, rgb: np.ndarray, mask: np.ndarray | None) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
         x = _grey_tensor(rgb, self.device)
@@ -754,6 +780,16 @@ def _unwrap_state(state: Mapping[str, Any]) -> dict[str, Any]:
         if isinstance(inner, Mapping) and inner and all(isinstance(v, torch.Tensor) for v in inner.values()):
             return dict(inner)
     return dict(state)
+
+
+def _disk_state(state: dict[str, Any]) -> Mapping[str, Any]:
+    """The extractor's entries of an official DISK checkpoint (the file may also hold the matcher's)."""
+    return state.get("extractor", state)
+
+
+def _superpoint_state(state: dict[str, Any]) -> dict[str, Any]:
+    """SuperPoint entries with the wrappers and key prefixes of other training code removed."""
+    return _strip_prefixes(_unwrap_state(state), ("module.", "extractor.", "net."))
 
 
 def _strip_prefixes(state: Mapping[str, Any], prefixes: Sequence[str]) -> dict[str, Any]:
@@ -1197,9 +1233,7 @@ def _make_lg(kind: str, lg_weights: str) -> Callable[..., Matcher]:
         # a plain file path names the LightGlue file; a dict or a folder also serves the extractor
         ext_weights = weights if weights is None or isinstance(weights, Mapping) or Path(weights).is_dir() else None
         extractor = _EXTRACTORS[kind](device, weights=ext_weights, allow_download=allow_download, **ext_opts)
-        state = load_state_dict(lg_weights, _weights_for(weights, lg_weights, primary=True),
-                                allow_download=allow_download)
-        model = build_lightglue(kind, state, device, **lg_opts)
+        model = build_lightglue(kind, _load_weights(lg_weights, weights, allow_download), device, **lg_opts)
         return Matcher(name, extractor, LightGlueAssigner(model, device))
 
     return factory
