@@ -16,12 +16,6 @@ from pixie.eval import evaluate, format_table, run_eval
 from pixie.mesh import from_arrays
 from pixie.render import Renderer, composite
 
-LMO = Path(__file__).resolve().parents[1].parent / "shared/data/lmo_dev/lmo"
-needs_lmo = pytest.mark.skipif(
-    not (LMO / "test_targets_bop19.json").is_file(),
-    reason=f"LM-O dev data not found at {LMO} (see shared/data/lmo_dev/README.md)",
-)
-
 K = make_K(500.0, 500.0, 160.0, 120.0)
 H, W = 240, 320
 
@@ -182,10 +176,9 @@ def test_run_eval_writes_outputs(synth, tmp_path):
 
 
 @pytest.fixture(scope="module")
-def lmo():
-    if not (LMO / "test_targets_bop19.json").is_file():
-        pytest.skip(f"LM-O dev data not found at {LMO} (see shared/data/lmo_dev/README.md)")
-    ds = BopDataset(LMO)
+def lmo(lmo_dataset):
+    """The LM-O dev targets of the first 25 images (conftest's ``lmo_dataset``: skips without the data)."""
+    ds = lmo_dataset
     images = sorted({(t.scene_id, t.im_id) for t in ds.targets()})[:25]
     targets = [t for t in ds.targets() if (t.scene_id, t.im_id) in set(images)]
     return ds, targets, {}

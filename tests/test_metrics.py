@@ -3,7 +3,6 @@
 from __future__ import annotations
 
 import math
-from pathlib import Path
 
 import numpy as np
 import pytest
@@ -13,12 +12,6 @@ from pixie import metrics as M
 from pixie.camera import make_K, make_T
 from pixie.mesh import from_arrays
 from pixie.render import Renderer
-
-LMO = Path(__file__).resolve().parents[1].parent / "shared/data/lmo_dev/lmo"
-needs_lmo = pytest.mark.skipif(
-    not (LMO / "test_targets_bop19.json").is_file(),
-    reason=f"LM-O dev data not found at {LMO} (see shared/data/lmo_dev/README.md)",
-)
 
 K = make_K(500.0, 500.0, 160.0, 120.0)
 H, W = 240, 320
@@ -95,13 +88,12 @@ def test_mspd_known_pixel_shift():
     assert M.mspd(behind, Tg, K, pts) == math.inf
 
 
-@needs_lmo
 @pytest.mark.parametrize("obj_id", [10, 11])
-def test_symmetric_lmo_object_rotated_by_its_symmetry(obj_id):
-    from pixie.datasets import BopDataset, symmetry_transforms
+def test_symmetric_lmo_object_rotated_by_its_symmetry(lmo_dataset, obj_id):
+    from pixie.datasets import symmetry_transforms
     from pixie.mesh import load_mesh
 
-    ds = BopDataset(LMO)
+    ds = lmo_dataset
     info = ds.model_info(obj_id, eval=True)
     d = info["diameter"]
     syms = symmetry_transforms(info)
