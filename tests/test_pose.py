@@ -9,7 +9,9 @@ import pytest
 
 from pixie.camera import make_K, make_T, project, rotation_angle_deg, transform_points
 from pixie.errors import ConfigError
-from pixie.pose import box_iou, depth_from_box, lift, projected_box, rotation_consistency, solve_pnp_ransac
+from pixie.pose import (
+    box_iou, depth_from_box, lift, projected_box, rotation_consistency, solve_pnp_ransac, solve_translation,
+)
 
 K = make_K(600.0, 600.0, 319.5, 239.5)
 HAS_POSELIB = importlib.util.find_spec("poselib") is not None
@@ -98,8 +100,10 @@ def test_depth_from_box_restores_distance(proc_mesh, make_pose, scale):
         T = make_pose(proc_mesh, 50 + seed, distance_factor=6.0, offset_px=80)
         pts = proc_mesh.vertices
         box = projected_box(T, K, pts)
+        # the depth ambiguity of PnP on small objects: the object slides along the ray through its centre
+        Rc = T[:3, :3] @ (0.5 * (pts.min(0) + pts.max(0)))
         wrong = T.copy()
-        wrong[:3, 3] *= scale
+        wrong[:3, 3] = (Rc + T[:3, 3]) * scale - Rc
         fixed = depth_from_box(wrong, K, pts, box)
         err = np.linalg.norm(fixed[:3, 3] - T[:3, 3]) / np.linalg.norm(T[:3, 3])
         assert err < 0.01, f"seed {seed}: translation still {100 * err:.2f}% off"
@@ -116,3 +120,36 @@ def test_box_iou_and_rotation_consistency():
     assert box_iou(a, np.array([20.0, 20.0, 30.0, 30.0])) == 0.0
     Rz = np.array([[0.0, -1.0, 0.0], [1.0, 0.0, 0.0], [0.0, 0.0, 1.0]])
     assert rotation_consistency(make_T(Rz, [0, 0, 500]), make_T(np.eye(3), [0, 0, 400])) == pytest.approx(90.0)
+
+
+@pytest.mark.parametrize("seed", [0, 1])
+def test_translation_for_a_known_rotation(proc_mesh, make_pose, seed):
+    """R fixed: t from 2-point RANSAC + least squares, with 40 % outliers and 0.5 px noise."""
+    T = make_pose(proc_mesh, 200 + seed, distance_factor=6.0, offset_px=80)
+    uv, X, is_in = _correspondences(proc_mesh, T, n=200, seed=seed)
+    t, inl = solve_translation(uv, X, K, T[:3, :3], threshold_px=3.0)
+    assert t is not None
+    # 0.5 px noise over ~200 inliers: depth within 0.5 % of the distance, lateral within 0.5 mm
+    assert abs(t[2] - T[2, 3]) < 0.005 * T[2, 3], (t, T[:3, 3])
+    assert np.linalg.norm(t[:2] - T[:2, 3]) < 0.5
+    found = np.zeros(len(uv), bool)
+    found[inl] = True
+    assert found[is_in].mean() > 0.98 and found[~is_in].mean() < 0.05
+
+
+def test_translation_noiseless_is_exact(proc_mesh, make_pose):
+    T = make_pose(proc_mesh, 3, distance_factor=4.0, offset_px=50)
+    X = proc_mesh.sample_points(20, seed=3)
+    uv = project(K, transform_points(T, X))
+    t, inl = solve_translation(uv, X, K, T[:3, :3], threshold_px=1.0)
+    np.testing.assert_allclose(t, T[:3, 3], atol=1e-6)
+    assert len(inl) == 20
+
+
+def test_translation_too_few_points(proc_mesh, make_pose):
+    T = make_pose(proc_mesh, 4)
+    X = proc_mesh.sample_points(4, seed=0)
+    t, inl = solve_translation(project(K, transform_points(T, X)), X, K, T[:3, :3], min_inliers=6)
+    assert t is None
+    t, _ = solve_translation(np.zeros((0, 2)), np.zeros((0, 3)), K, np.eye(3))
+    assert t is None

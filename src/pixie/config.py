@@ -63,7 +63,7 @@ class PoseConfig:
     threshold_space: str = "crop"  # 'image': original-image px; 'crop': px of the size x size query crop (scales with the object)
     confidence: float = 0.9999
     min_inliers: int = 6
-    solver: str = "opencv"  # 'opencv' (EPnP+RANSAC, LM refinement) or 'poselib'
+    solver: str = "poselib"  # 'poselib' (LO-RANSAC/P3P + bundle adjustment, ~20x faster here) or 'opencv' (EPnP+RANSAC, LM refinement)
     mode: str = "per_view"  # 'per_view': best view wins; 'concat': all views in one PnP problem
     # 'inliers' (paper); 'combined': inliers x rotation-to-reference x box agreement; 'similarity' /
     # 'combined_similarity': summed inlier match similarity instead of the count; 'excess' / 'combined_excess':
@@ -72,6 +72,10 @@ class PoseConfig:
     scoring: str = "combined_excess"
     depth_from_bbox: bool = True  # re-derive z from the crop scale where PnP depth is unreliable
     top_k_views: int = 24  # coarse candidates kept for scoring / multi-hypothesis output
+    # which (view, roll) pairs get PnP: 'excess' ranks them by summed match similarity above the query's
+    # background level, 'count' by number of matches (on LM-O the view within 20° of the truth is in the top 24
+    # for 18/48 targets by excess, 5/48 by count: bench/RESULTS.md)
+    candidate_ranking: str = "excess"
     views: str = "all"  # 'all' reference views or 'canonical' (the paper's 6 coarse views) for the first pass
 
 
@@ -82,6 +86,14 @@ class RefineConfig:
     view_selection_iters: int = 1
     recrop: bool = True  # view selection re-crops the query around the best pose's projected (amodal) box, like the references
     n_hypotheses: int = 5
+    # Render-at-estimate refinement (pixie.refine): render the object at a hypothesis inside the query crop,
+    # match the crop against that aligned render, re-solve PnP; repeated render_iters times for each of the
+    # render_hypotheses best distinct hypotheses. 0 iterations = the paper's pipeline;
+    # on LM-O (48 targets) 2 iterations x 6 hypotheses doubled ADD(-S)<0.1d (bench/RESULTS.md).
+    render_iters: int = 2
+    render_hypotheses: int = 6
+    render_seeds: int = 0  # + the poses of this many best-ranked reference (view, roll) pairs themselves
+    render_window: float | None = None  # NN window for aligned matching, fraction of refs.size (None: match.window)
 
 
 @dataclass

@@ -41,6 +41,7 @@ class Hypothesis:
     box_iou: float
     sim_sum: float = 0.0  # summed matcher similarity (cosine for NN backends) of the PnP inliers
     sim_mean: float = 0.0  # its mean over the inliers
+    source: str = "reference"  # 'reference' (first pass), 'view_selection', 'recrop' or 'render' (render-at-estimate)
 
 
 @dataclass
@@ -65,7 +66,7 @@ class PoseResult:
             "view": self.view, "roll": self.roll, "confidence": self.confidence, "timings": self.timings,
             "hypotheses": [
                 {"T_cam_from_obj": h.T_cam_from_obj.tolist(), "score": h.score, "n_inliers": h.n_inliers,
-                 "view": h.view, "roll": h.roll} for h in self.hypotheses
+                 "view": h.view, "roll": h.roll, "source": h.source} for h in self.hypotheses
             ],
         }
 
@@ -117,6 +118,8 @@ class PoseEstimator:
         self._pair_index = {p: i for i, p in enumerate(self._pairs)}
         self._axes = np.stack([optical_axis_in_object(T) for T in refs.poses[:, 0]])
         self._box_points = refs.mesh.vertices[:: max(1, len(refs.mesh.vertices) // 2000)]
+        self._renderer = None  # built on first use by render-at-estimate refinement
+        self._ranked_pairs: list[tuple[int, int]] = []  # (view, roll) pairs of the last query, best first
 
     # ------------------------------------------------------------------------------------------------
     def estimate(self, image: np.ndarray, K: np.ndarray, bbox=None, mask: np.ndarray | None = None) -> PoseResult:
@@ -146,12 +149,18 @@ class PoseEstimator:
         timings["match"] = time.perf_counter() - t
 
         t = time.perf_counter()
+        self._ranked_pairs = sorted(corr, key=lambda k: -self._pair_rank_score(corr[k][2]))  # seeds for refinement
         hyps = self._solve(corr, K, box, self._px_scale(crops[0]))
         timings["pnp"] = time.perf_counter() - t
 
         t = time.perf_counter()
         hyps = self._view_selection(hyps, crops, qfeats, K, box, image, use_mask)
         timings["view_selection"] = time.perf_counter() - t
+
+        if self.cfg.refine.render_iters > 0 and hyps:
+            t = time.perf_counter()
+            hyps = self._render_refine(hyps, crops[0], qfeats[0], K, box)
+            timings["render_refine"] = time.perf_counter() - t
         timings["total"] = time.perf_counter() - t_all
         return self._result(hyps, box, K, timings)
 
@@ -209,7 +218,7 @@ class PoseEstimator:
     def _solve(self, corr: dict, K: np.ndarray, box: np.ndarray, px_scale: float = 1.0) -> list[Hypothesis]:
         p = self.cfg.pose
         thr = p.reprojection_px * px_scale
-        ranked = sorted(corr.items(), key=lambda kv: -len(kv[1][0]))
+        ranked = sorted(corr.items(), key=lambda kv: -self._pair_rank_score(kv[1][2]))
         if p.views == "canonical":
             ranked = [kv for kv in ranked if self.refs.canonical[kv[0][0]]]
         # One candidate per view (its best roll), the top_k views by match count.
@@ -236,15 +245,29 @@ class PoseEstimator:
                 hyps.append(h)
         return sorted(hyps, key=lambda h: -h.score)
 
+    def _pair_rank_score(self, sims: np.ndarray) -> float:
+        """How strongly a (view, roll) pair's matches support it before PnP (``pose.candidate_ranking``).
+
+        'excess' (default): summed similarity above the query's background level; 'count': the number of
+        matches, which hardly separates views for windowed NN (every pair gets 60-100 matches on LM-O).
+        """
+        rk = self.cfg.pose.candidate_ranking
+        if rk == "count":
+            return float(len(sims))
+        if rk == "excess":
+            return float(np.clip(sims - self._sim_background, 0.0, None).sum()) + 1e-6 * len(sims)
+        raise ConfigError(f"pose.candidate_ranking must be 'excess' or 'count', got {rk!r}")
+
     def _hypothesis(self, res: PnPResult, v: int, r: int, K: np.ndarray, box: np.ndarray,
-                    sims: np.ndarray | None = None) -> Hypothesis | None:
+                    sims: np.ndarray | None = None, T_ref: np.ndarray | None = None) -> Hypothesis | None:
+        """Score a PnP solution found from reference (v, r), or from a render at ``T_ref`` when given."""
         if not res.ok:
             return None
         s_in = sims[res.inliers] if sims is not None and len(sims) == res.n_correspondences else np.ones(res.n_inliers)
         sim_sum = float(s_in.sum())
         sim_mean = float(s_in.mean()) if len(s_in) else 0.0
         T = res.T_cam_from_obj
-        rot = rotation_angle_deg(T[:3, :3], self.refs.poses[v, r][:3, :3])
+        rot = rotation_angle_deg(T[:3, :3], (self.refs.poses[v, r] if T_ref is None else T_ref)[:3, :3])
         iou = box_iou(projected_box(T, K, self._box_points), box)
         if self.cfg.pose.depth_from_bbox:
             T = depth_from_box(T, K, self._box_points, box)
@@ -284,6 +307,8 @@ class PoseEstimator:
             tried.add((v, r))
             corr = self._match_all(crops, qfeats, pairs=[(v, r)])
             new = self._solve(corr, K, box, scale)
+            for h in new:
+                h.source = "view_selection"
             hyps = sorted(hyps + new, key=lambda h: -h.score)
             if not new:
                 break
@@ -324,18 +349,79 @@ class PoseEstimator:
             return hyps
         new = self._solve({(v, r): (np.concatenate(p2s), np.concatenate(p3s), np.concatenate(scs))}, K, box,
                           self._px_scale(crop))
+        for h in new:
+            h.source = "recrop"
         return sorted(hyps + new, key=lambda h: -h.score)
+
+    def _render_refine(self, hyps: list[Hypothesis], crop, qf, K: np.ndarray, box: np.ndarray) -> list[Hypothesis]:
+        """Render-at-estimate refinement (:mod:`pixie.refine`) of the best distinct hypotheses.
+
+        ``crop`` must be unrotated (angle 0) and ``qf`` its features. Refined hypotheses keep the view/roll
+        of the hypothesis they started from; their rotation-consistency term compares with the rendered pose.
+        """
+        from pixie.refine import aligned_correspondences, render_in_crop
+
+        rc, p = self.cfg.refine, self.cfg.pose
+        if self._renderer is None:
+            from pixie.render import Renderer
+
+            self._renderer = Renderer(self.refs.mesh, smooth_normals=self.refs.config.smooth_normals)
+        window = None if rc.render_window is None else rc.render_window * self.refs.size
+        thr = p.reprojection_px * self._px_scale(crop)
+        new: list[Hypothesis] = []
+        seeds = self._distinct(hyps, rc.render_hypotheses)
+        seeds += self._reference_seeds(K, box, seeds)
+        for h in seeds:
+            cur = h
+            for _ in range(rc.render_iters):
+                aligned = render_in_crop(self._renderer, cur.T_cam_from_obj, K, crop, self.encodings)
+                if not aligned.mask.any():
+                    break
+                p2, p3, sc = aligned_correspondences(self.matcher, qf, crop, aligned, window)
+                res = solve_pnp_ransac(p2, p3, K, p.ransac_iterations, thr, p.confidence, p.min_inliers, p.solver)
+                nh = self._hypothesis(res, h.view, h.roll, K, box, sc, T_ref=cur.T_cam_from_obj)
+                if nh is None:
+                    break
+                nh.source = "render"
+                new.append(nh)
+                if rotation_angle_deg(nh.T_cam_from_obj[:3, :3], cur.T_cam_from_obj[:3, :3]) < 1.0:
+                    break  # converged
+                cur = nh
+        return sorted(hyps + new, key=lambda x: -x.score)
+
+    def _reference_seeds(self, K: np.ndarray, box: np.ndarray, taken: list[Hypothesis]) -> list[Hypothesis]:
+        """Poses of the best-ranked reference (view, roll) pairs themselves (``refine.render_seeds``), moved into
+        the photo, for render-at-estimate refinement: PnP on a weak matcher's output often fails even at the
+        right view, while refinement converges from the reference pose (10-15° away at most)."""
+        from pixie.refine import pose_from_reference
+
+        out: list[Hypothesis] = []
+        centre = 0.5 * (self.refs.mesh.vertices.min(0) + self.refs.mesh.vertices.max(0))
+        for v, r in self._ranked_pairs[: max(0, self.cfg.refine.render_seeds) * 3]:
+            if len(out) >= self.cfg.refine.render_seeds:
+                break
+            T = pose_from_reference(self.refs.poses[v, r], K, box, centre, self._box_points)
+            if any(rotation_angle_deg(T[:3, :3], h.T_cam_from_obj[:3, :3]) < 10 for h in taken + out):
+                continue
+            out.append(Hypothesis(T, 0.0, 0, 0, v, r, 0.0, 0.0, source="seed"))
+        return out
+
+    @staticmethod
+    def _distinct(hyps: list[Hypothesis], n: int, min_deg: float = 10.0) -> list[Hypothesis]:
+        """The first ``n`` hypotheses that differ by more than ``min_deg`` in rotation (hyps sorted by score)."""
+        out: list[Hypothesis] = []
+        for h in hyps:
+            if len(out) >= n:
+                break
+            if all(rotation_angle_deg(h.T_cam_from_obj[:3, :3], d.T_cam_from_obj[:3, :3]) > min_deg for d in out):
+                out.append(h)
+        return out
 
     def _result(self, hyps: list[Hypothesis], box, K, timings) -> PoseResult:
         if not hyps:
             return PoseResult(None, 0.0, 0, True, "no pose: too few 2D-3D matches survived PnP+RANSAC", timings=timings)
         best = hyps[0]
-        distinct: list[Hypothesis] = []
-        for h in hyps:
-            if all(rotation_angle_deg(h.T_cam_from_obj[:3, :3], d.T_cam_from_obj[:3, :3]) > 10 for d in distinct):
-                distinct.append(h)
-            if len(distinct) >= self.cfg.refine.n_hypotheses:
-                break
+        distinct = self._distinct(hyps, self.cfg.refine.n_hypotheses)
         second = distinct[1].score if len(distinct) > 1 else 0.0
         confidence = float(best.score / (best.score + second)) if best.score > 0 else 0.0
         failed = best.n_inliers < max(self.cfg.pose.min_inliers, 1) or best.score <= 0

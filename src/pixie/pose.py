@@ -86,7 +86,7 @@ def solve_pnp_ransac(
         rvec, tvec = cv2.solvePnPRefineLM(pts3d[inl].reshape(-1, 1, 3), pts2d[inl].reshape(-1, 1, 2), K, None, rvec, tvec)
         T = make_T(cv2.Rodrigues(rvec)[0], tvec.ravel())
     elif solver == "poselib":
-        T = _poselib_pnp(pts2d, pts3d, K, iterations, threshold_px)
+        T = _poselib_pnp(pts2d, pts3d, K, iterations, threshold_px, confidence, seed)
         if T is None:
             return PnPResult(None, np.zeros(0, int), n)
     else:
@@ -101,7 +101,8 @@ def solve_pnp_ransac(
     return PnPResult(T, inl, n, float(np.sqrt(np.mean(err[inl] ** 2))))
 
 
-def _poselib_pnp(pts2d, pts3d, K, iterations, threshold_px) -> np.ndarray | None:
+def _poselib_pnp(pts2d, pts3d, K, iterations, threshold_px, confidence=0.9999, seed=0) -> np.ndarray | None:
+    """PoseLib's LO-RANSAC over P3P with bundle adjustment on the inliers (about 20x faster than OpenCV here)."""
     try:
         import poselib
     except ImportError as exc:
@@ -109,7 +110,9 @@ def _poselib_pnp(pts2d, pts3d, K, iterations, threshold_px) -> np.ndarray | None
     h, w = 2 * K[1, 2] + 1, 2 * K[0, 2] + 1
     cam = {"model": "PINHOLE", "width": int(w), "height": int(h), "params": [K[0, 0], K[1, 1], K[0, 2], K[1, 2]]}
     pose, info = poselib.estimate_absolute_pose(
-        pts2d, pts3d, cam, {"max_iterations": int(iterations), "max_reproj_error": float(threshold_px)}, {}
+        pts2d, pts3d, cam,
+        {"max_iterations": int(iterations), "max_reproj_error": float(threshold_px), "success_prob": float(confidence),
+         "seed": int(seed)}, {}
     )
     if info.get("num_inliers", 0) == 0:
         return None
@@ -140,20 +143,86 @@ def box_iou(a: np.ndarray, b: np.ndarray) -> float:
     return float(inter / union) if union > 0 else 0.0
 
 
-def depth_from_box(T: np.ndarray, K: np.ndarray, points: np.ndarray, box_xyxy: np.ndarray) -> np.ndarray:
+def depth_from_box(T: np.ndarray, K: np.ndarray, points: np.ndarray, box_xyxy: np.ndarray, iterations: int = 3) -> np.ndarray:
     """Re-derive the distance of a pose from the size of the observed box, keeping its rotation.
 
-    The translation is scaled along its own ray so that the projected model box matches the
-    observed one; the larger of the width and height ratios is used, since occlusion shrinks a
-    visible box along one side more often than along both.
+    The object is moved along the ray through its centre (so it stays where PnP put it in the image) until
+    its projected box matches the observed one; the larger of the width and height ratios is used, since
+    occlusion shrinks a visible box along one side more often than along both. Perspective makes box size
+    only nearly inverse to distance, so the ratio is applied ``iterations`` times.
     """
-    pb = projected_box(T, K, points)
-    pw, ph = pb[2] - pb[0], pb[3] - pb[1]
     ow, oh = box_xyxy[2] - box_xyxy[0], box_xyxy[3] - box_xyxy[1]
-    if min(pw, ph, ow, oh) <= 0:
-        return T
-    s = max(ow / pw, oh / ph)
     out = T.copy()
-    # Scale about the camera centre: shift the box centre so that it stays where PnP put it.
-    out[:3, 3] = T[:3, 3] / s
+    Rc = T[:3, :3] @ (0.5 * (points.min(axis=0) + points.max(axis=0)))
+    for _ in range(max(1, iterations)):
+        pb = projected_box(out, K, points)
+        pw, ph = pb[2] - pb[0], pb[3] - pb[1]
+        if min(pw, ph, ow, oh) <= 0 or not np.isfinite(pw + ph):
+            return T
+        s = max(ow / pw, oh / ph)
+        out[:3, 3] = (Rc + out[:3, 3]) / s - Rc
     return out
+
+
+
+def solve_translation(
+    pts2d: np.ndarray,
+    pts3d: np.ndarray,
+    K: np.ndarray,
+    R: np.ndarray,
+    threshold_px: float = 5.0,
+    iterations: int = 200,
+    min_inliers: int = 6,
+    seed: int = 0,
+) -> tuple[np.ndarray | None, np.ndarray]:
+    """Translation for a known rotation: RANSAC over 2-point linear solutions, least squares on the inliers.
+
+    With ``R`` fixed the projection equations are linear in ``t`` (two per correspondence:
+    ``t_x - u' t_z = u' r_3·X - r_1·X`` with normalised ``u' = (u - c_x) / f_x``, same for y), so depth comes
+    from the spread of all inliers instead of being traded against rotation as in 6-DoF PnP, which on
+    small objects puts z tens of mm off.
+
+    Returns
+    -------
+    t : (3,) or None when fewer than ``min_inliers`` agree
+    inliers : indices into the correspondences
+    """
+    n = len(pts2d)
+    if n < max(min_inliers, 2):
+        return None, np.zeros(0, int)
+    un = (pts2d[:, 0] - K[0, 2]) / K[0, 0]
+    vn = (pts2d[:, 1] - K[1, 2]) / K[1, 1]
+    RX = pts3d @ np.asarray(R, np.float64).T
+    A = np.zeros((n, 2, 3))
+    A[:, 0, 0], A[:, 0, 2] = 1.0, -un
+    A[:, 1, 1], A[:, 1, 2] = 1.0, -vn
+    b = np.stack([un * RX[:, 2] - RX[:, 0], vn * RX[:, 2] - RX[:, 1]], axis=1)
+
+    def fit(idx):
+        sol, *_ = np.linalg.lstsq(A[idx].reshape(-1, 3), b[idx].reshape(-1), rcond=None)
+        return sol
+
+    def inliers_of(t):
+        Xc = RX + t
+        z = Xc[:, 2]
+        ok = z > 1e-6
+        uv = np.full((n, 2), np.inf)
+        uv[ok] = (Xc[ok, :2] / z[ok, None]) * [K[0, 0], K[1, 1]] + [K[0, 2], K[1, 2]]
+        return np.nonzero(np.linalg.norm(uv - pts2d, axis=1) < threshold_px)[0]
+
+    rng = np.random.default_rng(seed)
+    best = np.zeros(0, int)
+    for _ in range(int(iterations)):
+        t = fit(rng.choice(n, 2, replace=False))
+        inl = inliers_of(t)
+        if len(inl) > len(best):
+            best = inl
+    if len(best) < min_inliers:
+        return None, best
+    for _ in range(3):  # least squares on the consensus, then re-collect inliers
+        t = fit(best)
+        inl = inliers_of(t)
+        if len(inl) < min_inliers:
+            break
+        best = inl
+    return fit(best), best
