@@ -166,7 +166,6 @@ def test_end_to_end_finds_the_pose_basin(e2e, e2e_results):
 
 @pytest.mark.slow
 @pytest.mark.skipif(not os.environ.get("PIXIE_DENSE_E2E"), reason="about 3 CPU-minutes: set PIXIE_DENSE_E2E=1")
-@BAR_XFAIL
 def test_end_to_end_dense_references(proc_mesh, matcher_name, build_refs):
     """The issue's bar with the default view density (6 + 115 views, 8 rolls) at size 256."""
     cfg = e2e_config(matcher_name)
