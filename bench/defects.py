@@ -71,12 +71,12 @@ ABLATIONS = {"depth only": ["depth"], "normal only": ["normal"], "shade3_edges o
 
 def ensure_dataset(root: Path, params: dict, regenerate: bool, echo=print) -> dict:
     """Generate the dataset unless ``root/table1.json`` records the same parameters."""
-    from pixie.synth.scenes import generate_defect_dataset
+    from pixie.synth.scenes import DATASET_FORMAT, generate_defect_dataset
 
     meta = root / "table1.json"
     if meta.is_file() and not regenerate:
         old = json.loads(meta.read_text())
-        same = old.get("seed") == params["seed"] and all(old["params"].get(k) == v for k, v in params.items() if k != "seed")
+        same = old.get("format") == DATASET_FORMAT and old.get("seed") == params["seed"] and all(old["params"].get(k) == v for k, v in params.items() if k != "seed")
         if same:
             echo(f"reusing dataset {root}")
             return old
@@ -210,7 +210,7 @@ def estimate_all(name: str, ds: BopDataset, variants: dict[int, dict], cfg: Pixi
                 est = models.estimator(model, cfg)  # builds references on first use: not timed
                 t0 = time.perf_counter()
                 try:
-                    r = est.estimate(img, K, bbox=inst.bbox_visib)
+                    r = est.estimate(img, K, bbox=inst.box_visib)
                     T, score, failed, msg = r.T_cam_from_obj, float(r.score), bool(r.failed), r.message
                 except PixieError as exc:
                     T, score, failed, msg = None, 0.0, True, f"{type(exc).__name__}: {exc}"

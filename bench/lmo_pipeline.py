@@ -307,7 +307,7 @@ def run_oracle(ds: BopDataset, targets: list[Target], cfg: PixieConfig, matcher=
         g = gt_instance(ds, t)
         img = ds.load_rgb(t.scene_id, t.im_id)
         K = ds.camera(t.scene_id, t.im_id).K
-        bbox = g.bbox_visib if crop == "visib" else g.bbox_obj
+        bbox = g.box_visib if crop == "visib" else g.box_obj
         r = oracle_target(img, K, bbox, g.T_cam_from_obj, objects.mesh(t.obj_id), cfg, matcher,
                           objects.renderer(t.obj_id, cfg.refs.smooth_normals))
         err = pose_errors(objects.eval_data(t.obj_id), r.T_est, g.T_cam_from_obj)
@@ -377,7 +377,7 @@ def run_pipeline(ds: BopDataset, targets: list[Target], cfg: PixieConfig, name: 
             g = gt_instance(ds, t)
             img = ds.load_rgb(t.scene_id, t.im_id)
             K = ds.camera(t.scene_id, t.im_id).K
-            bbox = g.bbox_visib if crop == "visib" else g.bbox_obj
+            bbox = g.box_visib if crop == "visib" else g.box_obj
             t0 = time.perf_counter()
             res = est.estimate(img, K, bbox=bbox)
             dt = time.perf_counter() - t0

@@ -83,7 +83,7 @@ def main(argv: list[str] | None = None) -> int:
         for t in (t for t in targets if t.obj_id == oid):
             g = L.gt_instance(ds, t)
             r = target_ranks(est, ds.load_rgb(t.scene_id, t.im_id), ds.camera(t.scene_id, t.im_id).K,
-                             g.bbox_visib, g.T_cam_from_obj, args.near)
+                             g.box_visib, g.T_cam_from_obj, args.near)
             rows.append({"obj_id": oid, "im_id": t.im_id, **r})
     names = [k for k in rows[0] if k not in ("obj_id", "im_id", "min_err_deg")]
     summary = {}

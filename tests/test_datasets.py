@@ -53,6 +53,7 @@ def test_lmo_instances_camera_and_images():
     np.testing.assert_allclose(g.T_cam_from_obj[:3, 3], [161.68945982, -113.74032768, 1112.83112737])
     np.testing.assert_allclose(g.T_cam_from_obj[0, :3], [0.87547542, 0.47867615, -0.06858282])
     assert g.bbox_obj == [388, 164, 34, 45] and g.bbox_visib == [401, 164, 20, 33]
+    assert g.box_visib.tolist() == [401, 164, 21, 34]  # pixie boxes count pixels; BOP stores last - first
     assert g.visib_fract == pytest.approx(0.19964507542147295)
     assert g.px_count_visib == 225
     cam = ds.camera(2, 3)

@@ -122,10 +122,8 @@ def test_square_crop_K_centres_the_object(proc_mesh, K640, make_pose):
     Kc, box = views.square_crop_K(K640, T, proc_mesh.vertices, size, pad)
     uv = cam.project(Kc, cam.transform_points(T, proc_mesh.vertices))
     lo, hi = uv.min(0), uv.max(0)
-    # the projected box's centre is the crop's centre ((size-1)/2 in pixel-centre coordinates), up to
-    # half an original pixel: square_crop_K passes a pixel-centre coordinate as crop_K's window edge
-    # (crop_K counts x0 in pixel edges), which shifts the object by 0.5 * size/side crop pixels.
-    np.testing.assert_allclose(0.5 * (lo + hi), [(size - 1) / 2] * 2, atol=0.5 * box[3] + 1e-6)
+    # the projected box's centre is exactly the crop's centre ((size-1)/2 in pixel-centre coordinates)
+    np.testing.assert_allclose(0.5 * (lo + hi), [(size - 1) / 2] * 2, atol=1e-6)
     np.testing.assert_allclose((hi - lo).max(), size / pad, rtol=1e-9)
     # ... and the box it reports is the window crop_K was built from
     uv0 = cam.project(K640, cam.transform_points(T, proc_mesh.vertices))

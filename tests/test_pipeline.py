@@ -231,7 +231,7 @@ def test_real_lmo_images(lmo_setup, lmo_dataset, obj_id):
     t, gt = targets[obj_id]
     img = lmo_dataset.load_rgb(t.scene_id, t.im_id)
     K = lmo_dataset.camera(t.scene_id, t.im_id).K
-    res = ests[obj_id].estimate(img, K, bbox=gt.bbox_visib)
+    res = ests[obj_id].estimate(img, K, bbox=gt.box_visib)
     check_result(res)
     assert res.n_inliers >= 0 and isinstance(res.failed, bool)
     # the pose puts the object in front of the camera, roughly where the box is

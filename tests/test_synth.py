@@ -13,6 +13,7 @@ from pixie import metrics  # noqa: E402
 from pixie.camera import look_at, make_K  # noqa: E402
 from pixie.datasets import BopDataset  # noqa: E402
 from pixie.mesh import from_arrays, load_mesh  # noqa: E402
+from pixie.query import bbox_from_mask  # noqa: E402
 from pixie.render import Renderer  # noqa: E402
 from pixie.synth.assemblies import BRICK_H, STUD_PITCH, brick_part, lego_assembly, make_target_assembly  # noqa: E402
 from pixie.synth.defects import DEFECT_TYPES, apply_defect, make_defects, missing_part, shifted_part  # noqa: E402
@@ -193,9 +194,10 @@ def test_tiny_dataset_is_bop_readable_and_masks_match_renders(tiny):
         assert not (mv & ~r.mask).any()  # visible pixels are object pixels
         assert np.abs(depth[mv] - r.depth[mv]).max() < 0.1  # PNG depth is quantised to 0.1 mm
         assert inst.visib_fract == pytest.approx(mv.sum() / r.mask.sum(), abs=1e-6)
-        x, y, bw, bh = inst.bbox_visib
+        x, y, bw, bh = inst.bbox_visib  # BOP's convention: w = last - first
         ys, xs = np.nonzero(mv)
-        assert (x, y, x + bw - 1, y + bh - 1) == (xs.min(), ys.min(), xs.max(), ys.max())
+        assert (x, y, x + bw, y + bh) == (xs.min(), ys.min(), xs.max(), ys.max())
+        assert np.array_equal(inst.box_visib, bbox_from_mask(mv))  # pixie's convention: w counts pixels
     rows = summary["table1"]
     assert rows[-1]["scenes"] == 2 and rows[-1]["defects"] == 1
     assert rows[-1]["aps"] <= 1.0 and rows[-1]["aps_dev"] < 1.0 and rows[-1]["iou3d_dev"] < 1.0

@@ -177,7 +177,8 @@ def build_parser() -> argparse.ArgumentParser:
     e.add_argument("--refs", required=True, help="reference set (.npz) from `pixie refs build`")
     e.add_argument("--image", required=True)
     e.add_argument("--K", required=True, help="intrinsics fx,fy,cx,cy (OpenCV, pixels)")
-    e.add_argument("--bbox", help="object box x,y,w,h in pixels (default: mask box, else whole image)")
+    e.add_argument("--bbox", help="object box x,y,w,h in pixels, w and h counting pixels (BOP files store one less: "
+                   "add 1); default: the mask's box, else the whole image")
     e.add_argument("--mask", help="object mask image (white = object)")
     e.add_argument("-o", "--output", help="result JSON")
     e.add_argument("--overlay", help="PNG with the model drawn at the estimate")

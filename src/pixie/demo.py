@@ -88,7 +88,7 @@ def main(argv: list[str] | None = None) -> int:
         mesh = load_mesh(ds.model_path(args.obj_id))
         image, K = ds.load_rgb(2, args.im_id), ds.camera(2, args.im_id).K
         inst = next(g for g in ds.instances(2, args.im_id) if g.obj_id == args.obj_id)
-        T_gt, bbox = inst.T_cam_from_obj, inst.bbox_visib
+        T_gt, bbox = inst.T_cam_from_obj, inst.box_visib
         source = f"LM-O scene 2 image {args.im_id}, object {args.obj_id} (real photo, BOP GT box as crop)"
     else:
         mesh = generated_part()

@@ -44,6 +44,7 @@ class Mesh:
     source_hash: str = ""
     _diameter: float | None = field(default=None, repr=False)
     _corner_normals: np.ndarray | None = field(default=None, repr=False)
+    _hull_vertices: np.ndarray | None = field(default=None, repr=False)
 
     @property
     def bbox_min(self) -> np.ndarray:
@@ -62,6 +63,14 @@ class Mesh:
     def center(self) -> np.ndarray:
         """Centre of the axis-aligned bounding box (3,), mm."""
         return 0.5 * (self.bbox_min + self.bbox_max)
+
+    @property
+    def hull_vertices(self) -> np.ndarray:
+        """Vertices of the convex hull (H, 3), mm: every projected extreme point (box, silhouette extent) of
+        the mesh is one of them, at a fraction of the vertex count (all vertices for flat meshes)."""
+        if self._hull_vertices is None:
+            self._hull_vertices = _hull_points(self.vertices)
+        return self._hull_vertices
 
     @property
     def diameter(self) -> float:
@@ -106,15 +115,20 @@ class Mesh:
         return np.einsum("nk,nkd->nd", w, tri[idx])
 
 
-def _diameter(vertices: np.ndarray) -> float:
-    pts = vertices
-    if len(pts) > 64:
-        try:
-            from scipy.spatial import ConvexHull
+def _hull_points(vertices: np.ndarray) -> np.ndarray:
+    """Convex-hull vertices of ``vertices`` (N, 3); all of them when few, or when the hull is degenerate (flat)."""
+    if len(vertices) <= 64:
+        return vertices
+    from scipy.spatial import ConvexHull
 
-            pts = vertices[ConvexHull(vertices).vertices]
-        except Exception:  # degenerate (flat) meshes: fall back to all points, chunked
-            pts = vertices
+    try:
+        return vertices[ConvexHull(vertices).vertices]
+    except (RuntimeError, ValueError):  # QhullError (a RuntimeError) on flat or degenerate point sets
+        return vertices
+
+
+def _diameter(vertices: np.ndarray) -> float:
+    pts = _hull_points(vertices)
     best = 0.0
     for i in range(0, len(pts), 2048):
         d = np.linalg.norm(pts[i : i + 2048, None, :] - pts[None, :, :], axis=-1)

@@ -164,7 +164,6 @@ def depth_from_box(T: np.ndarray, K: np.ndarray, points: np.ndarray, box_xyxy: n
     return out
 
 
-
 def solve_translation(
     pts2d: np.ndarray,
     pts3d: np.ndarray,

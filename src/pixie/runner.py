@@ -104,7 +104,7 @@ def _run_target(ds: BopDataset, est, t: Target) -> dict:
     for inst in insts[: t.inst_count]:
         t0 = time.perf_counter()
         try:
-            r = est.estimate(img, K, bbox=inst.bbox_visib)
+            r = est.estimate(img, K, bbox=inst.box_visib)
             T, score, failed, timings = r.T_cam_from_obj, r.score, r.failed, r.timings
         except PixieError as exc:
             T, score, failed, timings = None, 0.0, True, {"error": str(exc)}

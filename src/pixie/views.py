@@ -83,16 +83,17 @@ def square_crop_K(
     Returns
     -------
     K_crop : (3, 3)
-    box : (4,) x0, y0, side (in the pixels of ``K``), and the scale size/side
+    box : (4,) x0, y0 (window corner in pixel-edge coordinates of ``K``, as :func:`crop_K`), side, and
+        the scale size/side
     """
     X = vertices @ T_cam_from_obj[:3, :3].T + T_cam_from_obj[:3, 3]
     uv = (X[:, :2] / X[:, 2:3]) * [K[0, 0], K[1, 1]] + [K[0, 2], K[1, 2]]
     lo, hi = uv.min(axis=0), uv.max(axis=0)
-    centre = 0.5 * (lo + hi)
+    # the box centre in pixel-edge coordinates (crop_K's convention): pixel centres sit at +0.5
+    centre = 0.5 * (lo + hi) + 0.5
     side = max(float((hi - lo).max()) * pad, 1.0)
-    return crop_K(K, centre[0] - side / 2, centre[1] - side / 2, side, size), np.array(
-        [centre[0] - side / 2, centre[1] - side / 2, side, size / side]
-    )
+    x0, y0 = centre[0] - side / 2, centre[1] - side / 2
+    return crop_K(K, x0, y0, side, size), np.array([x0, y0, side, size / side])
 
 
 def crop_K(K: np.ndarray, x0: float, y0: float, side: float, size: int) -> np.ndarray:

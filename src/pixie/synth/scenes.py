@@ -226,11 +226,16 @@ def _table_mesh(size: float = 1500.0) -> Mesh:
     return from_arrays(v2, f2, name="table")
 
 
+# Bumped when what the generator writes changes meaning (2: BOP's box convention, w = last - first).
+DATASET_FORMAT = 2
+
+
 def _bbox(mask: np.ndarray) -> list[int]:
+    """BOP's box of a mask: ``[x, y, w, h]`` with ``w = x_last - x_first`` (``bop_toolkit``'s ``calc_2d_bbox``)."""
     ys, xs = np.nonzero(mask)
     if len(xs) == 0:
         return [-1, -1, 0, 0]
-    return [int(xs.min()), int(ys.min()), int(xs.max() - xs.min() + 1), int(ys.max() - ys.min() + 1)]
+    return [int(xs.min()), int(ys.min()), int(xs.max() - xs.min()), int(ys.max() - ys.min())]
 
 
 def _camera_pose(rng: np.random.Generator, radius: float, K: np.ndarray, w: int, h: int) -> np.ndarray:
@@ -468,7 +473,7 @@ def generate_defect_dataset(
     summary = table1(all_variants, ious, n_defects_per_assembly={a + 1: len(defects[a]) for a in range(len(targets))})
     result = dict(table1=summary, n_scenes=len(all_variants), n_images=len(targets_json),
                   iou3d={str(k): v for k, v in ious.items()}, voxel_size=voxel_size,
-                  time_s=time.perf_counter() - t0, seed=seed,
+                  time_s=time.perf_counter() - t0, seed=seed, format=DATASET_FORMAT,
                   params=dict(n_assemblies=n_assemblies, n_defects=n_defects, n_colour_variants=n_colour_variants,
                               images_per_variant=images_per_variant, full_product=full_product,
                               defect_compound=defect_compound))
