@@ -391,13 +391,42 @@ def select_keypoints(
 class Extractor:
     """Base class: turns one checked RGB image (+ optional mask) into :class:`Features`.
 
-    Subclasses implement :meth:`_extract` and set :attr:`dim`.
+    Subclasses set :attr:`dim` and :attr:`default_threshold`, build their network in :meth:`_build` and
+    implement :meth:`_extract`.
+
+    Parameters
+    ----------
+    device : torch.device
+    max_keypoints : int
+        At most this many keypoints per image.
+    detection_threshold : float, optional
+        Detector threshold in the backend's own units; ``None``: :attr:`default_threshold`.
+    weights : WeightsArg
+        Explicit weight location (see :func:`_weights_for`); else the search of :func:`pixie.weights.resolve_weights`.
+    allow_download : bool
+        Whether a missing weight file may be fetched from its official URL.
     """
 
     dim: int = 0
+    default_threshold: float = 0.0
 
-    def __init__(self, device: torch.device) -> None:
+    def __init__(
+        self,
+        device: torch.device,
+        *,
+        max_keypoints: int = 1024,
+        detection_threshold: float | None = None,
+        weights: WeightsArg = None,
+        allow_download: bool = False,
+    ) -> None:
         self.device = device
+        self.max_keypoints = int(max_keypoints)
+        self.threshold = self.default_threshold if detection_threshold is None else float(detection_threshold)
+        self._build(weights, allow_download)
+
+    def _build(self, weights: WeightsArg, allow_download: bool) -> None:
+        """Create the network (``self.net``) or detector; called once by ``__init__``."""
+        raise NotImplementedError
 
     def __call__(self, image: np.ndarray, mask: np.ndarray | None = None) -> Features:
         rgb = check_image(image)
@@ -506,24 +535,19 @@ class AlikedExtractor(Extractor):
     """
 
     dim = 128
+    default_threshold = 0.2
 
-    def __init__(
-        self,
-        device: torch.device,
-        *,
-        model: str = "aliked-n16",
-        max_keypoints: int = 1024,
-        detection_threshold: float | None = None,
-        weights: WeightsArg = None,
-        allow_download: bool = False,
-    ) -> None:
-        super().__init__(device)
+    def __init__(self, device: torch.device, *, model: str = "aliked-n16", **kwargs: Any) -> None:
         if model not in ALIKED_MODELS:
             raise ConfigError(f"unknown ALIKED model {model!r}; choose one of {', '.join(ALIKED_MODELS)}")
-        KF = _kornia_feature()
-        threshold = 0.2 if detection_threshold is None else float(detection_threshold)
-        net = KF.ALIKED(model_name=model, max_num_keypoints=int(max_keypoints), detection_threshold=threshold)
-        self.net = self._load_net(net, model, weights, allow_download, ignore=("dkd.hw_grid",))  # a derived buffer
+        self.model = model
+        super().__init__(device, **kwargs)
+
+    def _build(self, weights: WeightsArg, allow_download: bool) -> None:
+        net = _kornia_feature().ALIKED(model_name=self.model, max_num_keypoints=self.max_keypoints,
+                                       detection_threshold=self.threshold)
+        # dkd.hw_grid is a derived buffer the weight files do not carry
+        self.net = self._load_net(net, self.model, weights, allow_download, ignore=("dkd.hw_grid",))
         self.dim = int(self.net.desc_head.sf_conv.out_channels)
 
     def _extract(self, rgb: np.ndarray, mask: np.ndarray | None) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
@@ -546,21 +570,10 @@ class DiskExtractor(Extractor):
     """DISK (kornia's U-Net) with the official ``depth-save.pth`` weights; NMS window 5, logits above threshold."""
 
     dim = 128
+    default_threshold = 0.0
 
-    def __init__(
-        self,
-        device: torch.device,
-        *,
-        max_keypoints: int = 1024,
-        detection_threshold: float | None = None,
-        weights: WeightsArg = None,
-        allow_download: bool = False,
-    ) -> None:
-        super().__init__(device)
-        KF = _kornia_feature()
-        self.max_keypoints = int(max_keypoints)
-        self.threshold = 0.0 if detection_threshold is None else float(detection_threshold)
-        self.net = self._load_net(KF.DISK(), "disk_depth", weights, allow_download, prepare=_disk_state)
+    def _build(self, weights: WeightsArg, allow_download: bool) -> None:
+        self.net = self._load_net(_kornia_feature().DISK(), "disk_depth", weights, allow_download, prepare=_disk_state)
 
     def _extract(self, rgb: np.ndarray, mask: np.ndarray | None) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
         x = _image_tensor(rgb, self.device)
@@ -598,21 +611,10 @@ class XFeatExtractor(Extractor):
     """
 
     dim = 64
+    default_threshold = 0.05
 
-    def __init__(
-        self,
-        device: torch.device,
-        *,
-        max_keypoints: int = 1024,
-        detection_threshold: float | None = None,
-        weights: WeightsArg = None,
-        allow_download: bool = False,
-    ) -> None:
-        super().__init__(device)
-        KF = _kornia_feature()
-        self.max_keypoints = int(max_keypoints)
-        self.threshold = 0.05 if detection_threshold is None else float(detection_threshold)
-        self.net = self._load_net(KF.XFeatModel(), "xfeat", weights, allow_download)
+    def _build(self, weights: WeightsArg, allow_download: bool) -> None:
+        self.net = self._load_net(_kornia_feature().XFeatModel(), "xfeat", weights, allow_download)
 
     def _extract(self, rgb: np.ndarray, mask: np.ndarray | None) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
         x = _image_tensor(rgb, self.device)
@@ -643,23 +645,13 @@ class SiftExtractor(Extractor):
     """OpenCV SIFT with RootSIFT descriptors (L1-normalise, square root: unit L2 norm)."""
 
     dim = 128
+    default_threshold = 0.04  # OpenCV's contrastThreshold
 
-    def __init__(
-        self,
-        device: torch.device,
-        *,
-        max_keypoints: int = 1024,
-        detection_threshold: float | None = None,
-        weights: WeightsArg = None,
-        allow_download: bool = False,
-    ) -> None:
-        super().__init__(device)
+    def _build(self, weights: WeightsArg, allow_download: bool) -> None:  # no weights
         import cv2
 
         self._cv2 = cv2
-        contrast = 0.04 if detection_threshold is None else float(detection_threshold)
-        self.sift = cv2.SIFT_create(nfeatures=int(max_keypoints), contrastThreshold=contrast)
-        self.max_keypoints = int(max_keypoints)
+        self.sift = cv2.SIFT_create(nfeatures=self.max_keypoints, contrastThreshold=self.threshold)
 
     def _extract(self, rgb: np.ndarray, mask: np.ndarray | None) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
         grey = self._cv2.cvtColor(rgb, self._cv2.COLOR_RGB2GRAY)
@@ -718,22 +710,13 @@ class SuperPointExtractor(Extractor):
     """SuperPoint: NMS radius 4, border 4, detection threshold 0.0005 (the MINIMA / LightGlue settings)."""
 
     dim = 256
+    default_threshold = 0.0005
 
-    def __init__(
-        self,
-        device: torch.device,
-        *,
-        max_keypoints: int = 1024,
-        detection_threshold: float | None = None,
-        weights: WeightsArg = None,
-        allow_download: bool = False,
-        nms_radius: int = 4,
-        border: int = 4,
-    ) -> None:
-        super().__init__(device)
-        self.max_keypoints = int(max_keypoints)
-        self.threshold = 0.0005 if detection_threshold is None else float(detection_threshold)
+    def __init__(self, device: torch.device, *, nms_radius: int = 4, border: int = 4, **kwargs: Any) -> None:
         self.nms_radius, self.border = int(nms_radius), int(border)
+        super().__init__(device, **kwargs)
+
+    def _build(self, weights: WeightsArg, allow_download: bool) -> None:
         self.net = self._load_net(SuperPointNet(), "superpoint", weights, allow_download, prepare=_superpoint_state)
 
     def _extract(self, rgb: np.ndarray, mask: np.ndarray | None) -> tuple[np.ndarray, np.ndarray, np.ndarray]:

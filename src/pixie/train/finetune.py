@@ -330,7 +330,7 @@ def train(train_data: list[dict], val_data: list[dict], cfg: TrainConfig, run_di
                 vl = float(np.mean([float(pair_loss(model, d, log_temp.exp(), cfg.window, cfg.pos_px, cfg.max_anchors,
                                                     np.random.default_rng(0))) for d in val_data])) if val_data else None
             model.train()
-            rec = {"step": step, "train_loss": float(np.mean(run_loss)), "val_loss": vl, "temp": float(log_temp.exp()),
+            rec = {"step": step, "train_loss": float(np.mean(run_loss)), "val_loss": vl, "temp": float(log_temp.detach().exp()),
                    **{f"val_{k}": x for k, x in v.items()}, "seconds": time.perf_counter() - t0}
             history.append(rec)
             run_loss = []
