@@ -8,7 +8,7 @@ Runs :meth:`pixie.estimator.PoseEstimator.estimate` on each target (``bbox_visib
 convention) keeping *every* hypothesis it produced, and counts, of all targets, how many have ADD(-S)<0.1d
 
 * ``chosen``: the returned pose (what ``bench/lmo_pipeline.py`` scores);
-* ``any``: any hypothesis (the ceiling of re-scoring alone);
+* ``any``: any hypothesis (the ceiling of re-scoring alone; each hypothesis's score terms are saved);
 * ``chosen, GT depth``: the returned pose moved along its centre ray to the true distance (the ceiling of a
   better distance estimate with the rotation and image position as they are);
 * ``chosen, box depth``: the returned pose's distance re-derived from the box (``pose.depth_from_box``) —
@@ -45,6 +45,13 @@ def along_ray_to_depth(T: np.ndarray, z: float) -> np.ndarray:
     return out
 
 
+def hypothesis_row(h, err: dict) -> dict:
+    """What the estimator knew of one hypothesis (its score terms) and whether it was right."""
+    return {"score": h.score, "n_inliers": h.n_inliers, "n_matches": h.n_matches, "rot_to_ref": h.rot_to_ref_deg,
+            "box_iou": h.box_iou, "sim_sum": h.sim_sum, "sim_mean": h.sim_mean, "source": h.source,
+            "view": h.view, "roll": h.roll, "add_ok": bool(err["add_ok"]), "rot_err": float(err["rot_err"])}
+
+
 def target_study(est: PoseEstimator, od, image, K, bbox, T_gt) -> dict:
     """ADD(-S)<0.1d of the chosen pose, of every hypothesis, and of the depth variants described above."""
     res = est.estimate(image, K, bbox=bbox)
@@ -60,6 +67,7 @@ def target_study(est: PoseEstimator, od, image, K, bbox, T_gt) -> dict:
     e = L.pose_errors(od, res.T_cam_from_obj, T_gt)
     row.update(chosen=bool(e["add_ok"]), rot_err=float(e["rot_err"]), n_hypotheses=len(res.hypotheses),
                any=any(ok(h.T_cam_from_obj) for h in res.hypotheses),
+               hypotheses=[hypothesis_row(h, L.pose_errors(od, h.T_cam_from_obj, T_gt)) for h in res.hypotheses],
                chosen_gt_depth=ok(along_ray_to_depth(res.T_cam_from_obj, T_gt[2, 3])),
                chosen_box_depth=ok(depth_from_box(res.T_cam_from_obj, K, pts, box)))
     return row
