@@ -12,6 +12,7 @@ import pytest
 from pixie.datasets import (
     BopDataset,
     PoseEstimate,
+    box_from_bop,
     gt_as_estimates,
     is_symmetric,
     orthonormalize,
@@ -19,7 +20,8 @@ from pixie.datasets import (
     symmetry_transforms,
     write_results_csv,
 )
-from pixie.errors import DatasetError
+from pixie.errors import DatasetError, ImageError
+from pixie.query import check_bbox
 
 LMO = Path(__file__).resolve().parents[1].parent / "shared/data/lmo_dev/lmo"
 needs_lmo = pytest.mark.skipif(
@@ -284,3 +286,15 @@ def test_results_headerless_and_missing(tmp_path):
     assert len(read_results_csv(p)) == 2
     with pytest.raises(DatasetError, match="results file not found"):
         read_results_csv(tmp_path / "none.csv")
+
+
+def test_box_from_bop_counts_pixels_and_keeps_invisible_boxes_empty():
+    """A 1-column BOP box (w = 0) covers one pixel; BOP's invisible-object box stays empty and is refused by name."""
+    assert box_from_bop([10, 20, 0, 5]).tolist() == [10, 20, 1, 6]
+    assert box_from_bop(None) is None
+    empty = box_from_bop([-1, -1, -1, -1])
+    assert empty.tolist() == [-1, -1, -1, -1]
+    with pytest.raises(ImageError, match="empty crop"):
+        check_bbox(empty, (480, 640))
+    with pytest.raises(DatasetError, match=r"\[x, y, w, h\]"):
+        box_from_bop([1, 2, 3])

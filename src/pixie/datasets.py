@@ -98,13 +98,16 @@ def box_from_bop(bbox) -> np.ndarray | None:
     BOP (``bop_toolkit`` ``calc_2d_bbox``) stores ``w = x_last - x_first`` for a mask spanning columns
     ``x_first..x_last``; pixie boxes (like OpenCV's ``boundingRect``, COCO and :func:`pixie.query.bbox_from_mask`)
     have ``w = x_last - x_first + 1``, the extent a projected object covers. The pixel matters: depth from the
-    box size is ~1 % off on an 80 px object without it.
+    box size is ~1 % off on an 80 px object without it. BOP's box of an invisible object, ``[-1, -1, -1, -1]``
+    (any negative ``w`` or ``h``), stays as it is: an empty box, which the estimator rejects by name.
     """
     if bbox is None:
         return None
     b = np.asarray(bbox, np.float64).reshape(-1)
     if b.shape != (4,):
         raise DatasetError(f"a BOP box is [x, y, w, h], got {list(bbox)!r}")
+    if b[2] < 0 or b[3] < 0:
+        return b
     return b + np.array([0.0, 0.0, 1.0, 1.0])
 
 

@@ -226,15 +226,17 @@ def _table_mesh(size: float = 1500.0) -> Mesh:
     return from_arrays(v2, f2, name="table")
 
 
-# Bumped when what the generator writes changes meaning (2: BOP's box convention, w = last - first).
-DATASET_FORMAT = 2
+# Bumped when what the generator writes changes meaning (2: BOP's box convention, w = last - first;
+# 3: invisible objects' boxes are BOP's [-1, -1, -1, -1]).
+DATASET_FORMAT = 3
 
 
 def _bbox(mask: np.ndarray) -> list[int]:
-    """BOP's box of a mask: ``[x, y, w, h]`` with ``w = x_last - x_first`` (``bop_toolkit``'s ``calc_2d_bbox``)."""
+    """BOP's box of a mask: ``[x, y, w, h]`` with ``w = x_last - x_first`` (``bop_toolkit``'s ``calc_2d_bbox``);
+    ``[-1, -1, -1, -1]`` for an empty mask, as BOP writes for invisible objects."""
     ys, xs = np.nonzero(mask)
     if len(xs) == 0:
-        return [-1, -1, 0, 0]
+        return [-1, -1, -1, -1]
     return [int(xs.min()), int(ys.min()), int(xs.max() - xs.min()), int(ys.max() - ys.min())]
 
 
