@@ -156,8 +156,8 @@ def test_translation_too_few_points(proc_mesh, make_pose):
 
 
 def test_hull_vertices_give_the_exact_projected_box(lmo_meshes, make_pose):
-    """The estimator's box points (convex-hull vertices) project to the same box as every vertex, while a
-    vertex subsample (the old rule) comes out smaller, which pulled box-derived depth ~0.6 % too close."""
+    """The estimator's box points (convex-hull vertices) are fewer than the vertices yet project to exactly
+    the same box (a vertex subsample, the old rule, came out smaller and pulled box depth ~0.6 % too close)."""
     from pixie.mesh import from_arrays
 
     for oid, mesh in lmo_meshes.items():

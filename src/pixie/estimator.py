@@ -402,7 +402,7 @@ class PoseEstimator:
         from pixie.refine import pose_from_reference
 
         out: list[Hypothesis] = []
-        centre = 0.5 * (self.refs.mesh.vertices.min(0) + self.refs.mesh.vertices.max(0))
+        centre = self.refs.mesh.center
         for v, r in self._ranked_pairs[: max(0, self.cfg.refine.render_seeds) * 3]:
             if len(out) >= self.cfg.refine.render_seeds:
                 break
