@@ -36,6 +36,15 @@ def _add_config_args(p: argparse.ArgumentParser) -> None:
     p.add_argument("--set", action="append", metavar="SECTION.KEY=VALUE", help="override one config value (repeatable)")
 
 
+def _add_parallel_args(p: argparse.ArgumentParser) -> None:
+    p.add_argument("--threads", type=int, default=1, help="torch/OpenCV threads per process (default 1; serial and "
+                   "Ray runs give identical results at the same value)")
+    p.add_argument("--ray", action="store_true", help="spread the work over Ray workers (pip install 'pixie-pose[ray]')")
+    p.add_argument("--address", help="Ray cluster to join (auto, HOST:PORT or ray://HOST:10001); default: a local "
+                   "Ray on this machine's CPUs")
+    p.add_argument("--workers", type=int, help="Ray workers (default: cluster CPUs // --threads)")
+
+
 def _tqdm_progress(total_label: str):
     from tqdm import tqdm
 
@@ -97,25 +106,61 @@ def cmd_refs_show(args: argparse.Namespace) -> int:
 
 
 # --------------------------------------------------------------------------------------- estimate
+def _use_stored_matcher(cfg: PixieConfig, refs, overrides: list[str] | None) -> None:
+    """Match with the features the set was built with (unless --set match.matcher says otherwise)."""
+    stored = sorted({k.split("/")[0] for k in refs.features})
+    if stored and cfg.match.matcher not in stored and not any(o.startswith("match.matcher=") for o in overrides or []):
+        cfg.match.matcher = stored[0]
+
+
+def _refs_for_estimate(args: argparse.Namespace, cfg: PixieConfig, cache: Path):
+    """(reference set, its path): from --refs, or built once from --mesh into ``cache``."""
+    from pixie.references import load_reference_set
+
+    if bool(args.refs) == bool(args.mesh):
+        raise PixieError("give the object as --refs SET.npz (from `pixie refs build`) or --mesh MODEL (built once and cached)")
+    if args.refs:
+        return load_reference_set(args.refs), Path(args.refs)
+    from pixie.mesh import load_mesh
+    from pixie.runner import cached_reference_set, reference_cache_path
+
+    mesh = load_mesh(args.mesh, units=args.units)
+    path = reference_cache_path(mesh, cfg, cache)
+    if not path.is_file():
+        print(f"building references of {mesh.name} (preset {cfg.preset}) -> {path}")
+    refs = cached_reference_set(mesh, cfg, cache, progress=_tqdm_progress("view"))
+    return refs, path
+
+
 def cmd_estimate(args: argparse.Namespace) -> int:
+    if args.batch:
+        return _estimate_batch(args)
+    if not args.image:
+        raise PixieError("give --image PHOTO (one photo) or --batch FOLDER|MANIFEST (many)")
+    if args.ray:
+        raise PixieError("--ray distributes --batch runs; one --image runs here")
     from pixie.camera import parse_K
     from pixie.estimator import PoseEstimator
     from pixie.query import load_image
-    from pixie.references import load_reference_set
     from pixie.render import Renderer
     from pixie.viz import overlay_pose, save_png
+    from pixie.weights import cache_dir
 
     cfg = _config(args)
-    refs = load_reference_set(args.refs)
+    if args.K is None:
+        raise PixieError("--K fx,fy,cx,cy is needed (the camera intrinsics in pixels)")
+    if args.bbox is None and args.mask is None:
+        raise PixieError("no object box: pass --bbox x,y,w,h (pixels, w and h counting pixels) or --mask MASK.png "
+                         "(white = object); pixie does not guess where the object is. To use the whole image on "
+                         "purpose, pass --bbox 0,0,WIDTH,HEIGHT")
+    refs, _ = _refs_for_estimate(args, cfg, cache_dir().parent / "refs")
     image = load_image(args.image)
     K = parse_K(args.K)
     bbox = None if args.bbox is None else [float(v) for v in args.bbox.split(",")]
     mask = None
     if args.mask:
         mask = load_image(args.mask)[..., 0] > 127
-    stored = sorted({k.split("/")[0] for k in refs.features})
-    if stored and cfg.match.matcher not in stored and not any(o.startswith("match.matcher=") for o in args.set or []):
-        cfg.match.matcher = stored[0]  # use the features the set was built with instead of re-extracting
+    _use_stored_matcher(cfg, refs, args.set)
     est = PoseEstimator(refs, cfg)
     res = est.estimate(image, K, bbox=bbox, mask=mask)
     T = res.T_cam_from_obj
@@ -134,6 +179,33 @@ def cmd_estimate(args: argparse.Namespace) -> int:
         save_png(args.overlay, overlay_pose(image, Renderer(refs.mesh), T, K))
         print(f"overlay -> {args.overlay}")
     return 1 if res.failed else 0
+
+
+def _estimate_batch(args: argparse.Namespace) -> int:
+    from pixie.batch import folder_items, read_manifest, run_batch
+
+    if args.image or args.mask or args.overlay:
+        raise PixieError("--batch takes a folder or a manifest; --image/--mask/--overlay are for one photo")
+    if not args.output:
+        raise PixieError("--batch needs -o OUT_FOLDER (results.csv, results.jsonl, index.html, overlays/)")
+    cfg = _config(args)
+    src = Path(args.batch)
+    if src.is_dir():
+        items = folder_items(src, args.K, args.bbox, args.masks)
+    else:
+        if args.K or args.bbox or args.masks:
+            raise PixieError("a manifest carries K and bbox/mask per row; drop --K/--bbox/--masks")
+        items = read_manifest(src)
+    out = Path(args.output)
+    refs, refs_path = _refs_for_estimate(args, cfg, out / "refs")
+    _use_stored_matcher(cfg, refs, args.set)
+    del refs
+    s = run_batch(items, out, cfg, refs_path, threads=args.threads, use_ray=args.ray, address=args.address,
+                  workers=args.workers, overlays=not args.no_overlays, max_items=args.max_items)
+    print(f"{s.n_items} images: {s.n_cached} cached, {s.n_run} run ({s.n_failed} failed in all) in {s.seconds:.0f} s"
+          f"{f' on {s.workers} Ray workers' if args.ray else ''}")
+    print(f"results -> {s.results_csv} (BOP), {s.results_jsonl}; overlays -> {s.html}")
+    return 0
 
 
 # --------------------------------------------------------------------------------------- weights
@@ -217,15 +289,23 @@ def build_parser() -> argparse.ArgumentParser:
     s.add_argument("--tile", type=int, default=128)
     s.set_defaults(func=cmd_refs_show)
 
-    e = sub.add_parser("estimate", help="estimate the pose of the object in one photo")
-    e.add_argument("--refs", required=True, help="reference set (.npz) from `pixie refs build`")
-    e.add_argument("--image", required=True)
-    e.add_argument("--K", required=True, help="intrinsics fx,fy,cx,cy (OpenCV, pixels)")
+    e = sub.add_parser("estimate", help="estimate the pose of the object in one photo, or in a folder / manifest of photos")
+    e.add_argument("--refs", help="reference set (.npz) from `pixie refs build`")
+    e.add_argument("--mesh", help="or the CAD model: references are built once with the preset and cached")
+    e.add_argument("--units", default="mm", choices=["mm", "cm", "m", "auto"], help="units of --mesh")
+    e.add_argument("--image", help="one photo")
+    e.add_argument("--batch", metavar="FOLDER|MANIFEST", help="many photos: a folder (with --K and --bbox or --masks) "
+                   "or a CSV/JSON manifest with image, K, bbox or mask per row; resumable; needs -o OUT_FOLDER")
+    e.add_argument("--K", help="intrinsics fx,fy,cx,cy (OpenCV, pixels)")
     e.add_argument("--bbox", help="object box x,y,w,h in pixels, w and h counting pixels (BOP files store one less: "
-                   "add 1); default: the mask's box, else the whole image")
+                   "add 1); or give --mask. One of them is required")
     e.add_argument("--mask", help="object mask image (white = object)")
-    e.add_argument("-o", "--output", help="result JSON")
+    e.add_argument("--masks", help="--batch FOLDER: folder of masks named like the images")
+    e.add_argument("-o", "--output", help="result JSON (one photo) or output folder (--batch)")
     e.add_argument("--overlay", help="PNG with the model drawn at the estimate")
+    e.add_argument("--no-overlays", action="store_true", help="--batch: skip the overlay pictures")
+    e.add_argument("--max-items", type=int, help="--batch: stop after this many new images (resume later)")
+    _add_parallel_args(e)
     _add_config_args(e)
     e.set_defaults(func=cmd_estimate)
 
@@ -239,6 +319,11 @@ def build_parser() -> argparse.ArgumentParser:
     _add_config_args(r)
     r.set_defaults(func=cmd_run)
 
+    d = sub.add_parser("demo", help="build references for one object and estimate its pose in a photo "
+                       "(a generated part when no LM-O data is around); `pixie demo -h` for its options",
+                       add_help=False)
+    d.add_argument("demo_args", nargs=argparse.REMAINDER)
+
     w = sub.add_parser("weights", help="list matching backends and where their weight files are found (sha256)")
     w.add_argument("--dir", help="a folder searched first (as --set match.weights_dir)")
     w.add_argument("--json", action="store_true", help="machine-readable output")
@@ -251,6 +336,15 @@ def build_parser() -> argparse.ArgumentParser:
 
 
 def main(argv: list[str] | None = None) -> int:
+    argv = sys.argv[1:] if argv is None else list(argv)
+    if argv[:1] == ["demo"]:  # the demo parses its own options
+        from pixie.demo import main as demo_main
+
+        try:
+            return int(demo_main(argv[1:]) or 0)
+        except PixieError as exc:
+            print(f"pixie: error: {exc}", file=sys.stderr)
+            return 2
     args = build_parser().parse_args(argv)
     logging.basicConfig(level=logging.INFO if args.verbose else logging.WARNING, format="%(levelname)s %(name)s: %(message)s")
     try:

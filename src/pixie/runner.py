@@ -34,6 +34,11 @@ def make_matcher(cfg: PixieConfig, size: int | None = None):
     return matcher_from_config(cfg.match, size or cfg.refs.size)
 
 
+def reference_cache_path(mesh: Mesh, cfg: PixieConfig, cache_dir: str | Path) -> Path:
+    """Where :func:`cached_reference_set` keeps the set of ``mesh`` for ``cfg``."""
+    return Path(cache_dir) / f"{mesh.name}-{refs_key(mesh, cfg)}.npz"
+
+
 def cached_reference_set(mesh: Mesh, cfg: PixieConfig, cache_dir: str | Path, matcher=None,
                          progress: Callable[[int, int], None] | None = None, workers: int = 1) -> ReferenceSet:
     """Load the reference set of ``mesh`` for ``cfg`` from ``cache_dir``, building (and saving) it if absent."""
