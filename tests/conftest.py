@@ -12,8 +12,11 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-LMO_DIR = Path(__file__).resolve().parents[1].parent / "shared/data/lmo_dev/lmo"
-WEIGHTS_DIR = Path(__file__).resolve().parents[1].parent / "shared/weights"
+from pixie.weights import shared_root
+
+_SHARED = shared_root() or Path("/nonexistent-shared")  # $PIXIE_SHARED, else ../shared beside the repository
+LMO_DIR = _SHARED / "data/lmo_dev/lmo"
+WEIGHTS_DIR = _SHARED / "weights"
 
 needs_lmo = pytest.mark.skipif(
     not (LMO_DIR / "models").is_dir(), reason=f"LM-O development data not found at {LMO_DIR}"

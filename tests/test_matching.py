@@ -11,6 +11,7 @@ import pytest
 import torch
 
 from pixie.errors import ConfigError, ImageError, ReferenceSetError, WeightsError
+from pixie.weights import shared_root
 from pixie.matching import (
     Features,
     Matches,
@@ -26,7 +27,7 @@ from pixie.matching import (
     unpack_features,
 )
 
-SHARED = Path(__file__).resolve().parents[1].parent / "shared"
+SHARED = shared_root() or Path("/nonexistent-shared")  # $PIXIE_SHARED or ../shared
 PHOTO = SHARED / "data" / "lmo_dev" / "lmo" / "test" / "000002" / "rgb" / "000003.png"
 
 # A mild perspective warp of a 256 px crop (largest displacement about 20 px).

@@ -12,7 +12,7 @@ from pixie import weights
 from pixie.errors import WeightsError
 from pixie.weights import KNOWN_WEIGHTS, cache_dir, known_weight_names, load_state_dict, resolve_weights
 
-SHARED_WEIGHTS = Path(__file__).resolve().parents[1].parent / "shared" / "weights"
+SHARED_WEIGHTS = (weights.shared_root() or Path("/nonexistent-shared")) / "weights"
 
 
 def _save(path: Path, tag: float) -> Path:

@@ -38,6 +38,7 @@ import numpy as np
 
 from pixie.config import PixieConfig
 from pixie.errors import ConfigError, ImageError, PixieError
+from pixie.outputs import write_atomic
 
 __all__ = ["BatchItem", "read_manifest", "folder_items", "run_batch", "IMAGE_SUFFIXES"]
 
@@ -239,12 +240,6 @@ def _process(state: dict, job: dict) -> dict:
 
 
 # ------------------------------------------------------------------------------------------ driver
-def _atomic_write(path: Path, data: bytes | str) -> None:
-    tmp = path.with_name(path.name + f".{os.getpid()}.tmp")
-    tmp.write_bytes(data if isinstance(data, bytes) else data.encode("utf-8"))
-    os.replace(tmp, path)
-
-
 def _read_journal(path: Path) -> dict[str, dict]:
     out: dict[str, dict] = {}
     if path.is_file():
@@ -319,7 +314,7 @@ def run_batch(items: list[BatchItem], out_dir: str | Path, config: PixieConfig, 
             rec["overlay"] = None
             if png is not None:
                 name = f"overlays/{rec['row']:05d}_{Path(rec['name']).stem}.png"
-                _atomic_write(out / name, png)
+                write_atomic(out / name, png)
                 rec["overlay"] = name
             rec.update(config_digest=digest, preset=config.preset, refs=str(refs_path), refs_sha256=refs_sha,
                        mesh_sha256=mesh_sha)
@@ -348,10 +343,10 @@ def run_batch(items: list[BatchItem], out_dir: str | Path, config: PixieConfig, 
         if res.get("T_cam_from_obj") is not None:
             ests.append(PoseEstimate(r["scene_id"], r["im_id"], r["obj_id"], 0.0 if res["failed"] else float(res["score"]),
                                      np.asarray(res["T_cam_from_obj"]), float(r["time_s"])))
-    csv_path = write_results_csv(out / "results.csv.tmp", ests)
-    os.replace(csv_path, out / "results.csv")
-    _atomic_write(out / "results.jsonl", "".join(json.dumps(r) + "\n" for r in records))
-    _atomic_write(out / "index.html", _html(records, len(jobs), config))
+    tmp_csv = write_results_csv(out / f".results.csv.{os.getpid()}.tmp", ests)
+    os.replace(tmp_csv, out / "results.csv")
+    write_atomic(out / "results.jsonl", "".join(json.dumps(r) + "\n" for r in records))
+    write_atomic(out / "index.html", _html(records, len(jobs), config))
     n_failed = sum(1 for r in records if r["result"].get("failed"))
     return BatchSummary(len(jobs), n_cached, len(todo), n_failed, time.perf_counter() - t_start,
                         out / "results.csv", out / "results.jsonl", out / "index.html", n_workers)

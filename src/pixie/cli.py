@@ -45,6 +45,26 @@ def _add_parallel_args(p: argparse.ArgumentParser) -> None:
     p.add_argument("--workers", type=int, help="Ray workers (default: cluster CPUs // --threads)")
 
 
+def _load_mesh(path: str, units: str):
+    """load_mesh, announcing the units in one line and any size warning as one clean line."""
+    import warnings
+
+    from pixie.mesh import load_mesh, units_note
+
+    with warnings.catch_warnings(record=True) as caught:
+        warnings.simplefilter("always")
+        mesh = load_mesh(path, units=units)
+    print(units_note(mesh))
+    for w in caught:
+        print(f"pixie: warning: {w.message}", file=sys.stderr)
+    return mesh
+
+
+def _add_units_arg(p: argparse.ArgumentParser, what: str = "the mesh file") -> None:
+    p.add_argument("--units", default="auto", choices=["auto", "mm", "cm", "m"],
+                   help=f"units of {what} (default auto: metres if it is under 2 units across, else mm; announced)")
+
+
 def _tqdm_progress(total_label: str):
     from tqdm import tqdm
 
@@ -62,7 +82,6 @@ def _tqdm_progress(total_label: str):
 
 # ------------------------------------------------------------------------------------------- refs
 def cmd_refs_build(args: argparse.Namespace) -> int:
-    from pixie.mesh import load_mesh
     from pixie.references import build_reference_set, check_output_path, save_reference_set
     from pixie.runner import make_matcher
 
@@ -77,12 +96,12 @@ def cmd_refs_build(args: argparse.Namespace) -> int:
     if args.encodings:
         cfg.refs.encodings = args.encodings.split(",")
     out = check_output_path(args.output)  # fail before minutes of rendering, not after
-    mesh = load_mesh(args.mesh, units=args.units)
+    mesh = _load_mesh(args.mesh, args.units)
     if args.matcher and args.matcher != "none":
         cfg.match.matcher = args.matcher
     matcher = None if args.matcher == "none" else make_matcher(cfg)
     n_views = cfg.refs.n_fibonacci + (6 if cfg.refs.canonical else 0)
-    print(f"{mesh.name}: {len(mesh.vertices)} vertices, diameter {mesh.diameter:.1f} mm; "
+    print(f"{mesh.name}: {len(mesh.vertices)} vertices; "
           f"{n_views} views x {cfg.refs.rotations} rolls at {cfg.refs.size} px, encodings {cfg.refs.encodings}, "
           f"features: {matcher.name if matcher else 'none'}")
     refs = build_reference_set(mesh, cfg.refs, matcher=matcher, progress=_tqdm_progress("view"), workers=args.workers)
@@ -121,10 +140,9 @@ def _refs_for_estimate(args: argparse.Namespace, cfg: PixieConfig, cache: Path):
         raise PixieError("give the object as --refs SET.npz (from `pixie refs build`) or --mesh MODEL (built once and cached)")
     if args.refs:
         return load_reference_set(args.refs), Path(args.refs)
-    from pixie.mesh import load_mesh
     from pixie.runner import cached_reference_set, reference_cache_path
 
-    mesh = load_mesh(args.mesh, units=args.units)
+    mesh = _load_mesh(args.mesh, args.units)
     path = reference_cache_path(mesh, cfg, cache)
     if not path.is_file():
         print(f"building references of {mesh.name} (preset {cfg.preset}) -> {path}")
@@ -172,8 +190,9 @@ def cmd_estimate(args: argparse.Namespace) -> int:
         print("T_cam_from_obj (mm) =\n" + str(T))
     print("timings (s): " + ", ".join(f"{k} {v:.2f}" for k, v in res.timings.items()))
     if args.output:
-        Path(args.output).parent.mkdir(parents=True, exist_ok=True)
-        Path(args.output).write_text(json.dumps(res.to_dict(), indent=1))
+        from pixie.outputs import write_atomic
+
+        write_atomic(args.output, json.dumps(res.to_dict(), indent=1) + "\n")
         print(f"result -> {args.output}")
     if args.overlay:
         save_png(args.overlay, overlay_pose(image, Renderer(refs.mesh), T, K))
@@ -275,7 +294,7 @@ def build_parser() -> argparse.ArgumentParser:
     b.add_argument("--views", type=int, help="total views: 6 canonical + Fibonacci (default 121)")
     b.add_argument("--rotations", type=int, help="in-plane rolls per view (default 8)")
     b.add_argument("--size", type=int, help="reference image side in px (default 256)")
-    b.add_argument("--units", default="mm", choices=["mm", "cm", "m", "auto"], help="units of the mesh file")
+    _add_units_arg(b)
     b.add_argument("--encodings", help="comma-separated encodings (default shade3_edges,depth,normal)")
     b.add_argument("--matcher", help="features to store (default: config match.matcher; 'none' for none)")
     b.add_argument("--workers", type=int, default=1, help="render processes")
@@ -292,7 +311,7 @@ def build_parser() -> argparse.ArgumentParser:
     e = sub.add_parser("estimate", help="estimate the pose of the object in one photo, or in a folder / manifest of photos")
     e.add_argument("--refs", help="reference set (.npz) from `pixie refs build`")
     e.add_argument("--mesh", help="or the CAD model: references are built once with the preset and cached")
-    e.add_argument("--units", default="mm", choices=["mm", "cm", "m", "auto"], help="units of --mesh")
+    _add_units_arg(e, "--mesh")
     e.add_argument("--image", help="one photo")
     e.add_argument("--batch", metavar="FOLDER|MANIFEST", help="many photos: a folder (with --K and --bbox or --masks) "
                    "or a CSV/JSON manifest with image, K, bbox or mask per row; resumable; needs -o OUT_FOLDER")

@@ -14,8 +14,6 @@ hash and the build config; a stale, foreign or corrupt file raises :class:`Refer
 from __future__ import annotations
 
 import json
-import os
-import tempfile
 import time
 import zipfile
 import zlib
@@ -308,26 +306,16 @@ def add_features(refs: ReferenceSet, matcher, encodings: list[str] | None = None
 
 
 def check_output_path(path: str | Path) -> Path:
-    """The ``.npz`` path a set will be written to; its folder is created and must be writable."""
-    path = Path(path)
-    if path.suffix != ".npz":
-        path = path.with_suffix(".npz")
-    parent = path.parent
-    try:
-        parent.mkdir(parents=True, exist_ok=True)
-    except OSError as exc:
-        raise ReferenceSetError(f"cannot create output folder {parent}: {exc}") from exc
-    if not os.access(parent, os.W_OK):
-        raise ReferenceSetError(f"output folder {parent} is not writable")
-    if path.is_dir():
-        raise ReferenceSetError(f"output {path} is a folder")
-    return path
+    """The path a set will be written to, exactly as given (no suffix added); its folder is created and must
+    be writable (see :func:`pixie.outputs.check_output`)."""
+    from pixie.outputs import check_output
+
+    return check_output(path, ReferenceSetError)
 
 
 def save_reference_set(refs: ReferenceSet, path: str | Path) -> Path:
     """Write ``refs`` to ``path`` (.npz) atomically: a killed write leaves no partial file."""
     path = check_output_path(path)
-    parent = path.parent
     meta = {
         "format_version": FORMAT_VERSION,
         "pixie_version": __version__,
@@ -351,18 +339,10 @@ def save_reference_set(refs: ReferenceSet, path: str | Path) -> Path:
     for key, packed in refs.features.items():
         for k, v in packed.items():
             arrays[f"feat/{key}/{k}"] = v
-    fd, tmp = tempfile.mkstemp(prefix=f".{path.stem}.", suffix=".npz.tmp", dir=parent)
-    os.close(fd)
-    try:
-        with open(tmp, "wb") as fh:  # a file object: numpy would otherwise append '.npz' to the name
-            np.savez_compressed(fh, **arrays)
-            fh.flush()
-            os.fsync(fh.fileno())
-        os.replace(tmp, path)
-    except BaseException:
-        Path(tmp).unlink(missing_ok=True)
-        raise
-    return path
+    from pixie.outputs import write_with
+
+    # a file object: numpy would otherwise append '.npz' to the name
+    return write_with(path, lambda fh: np.savez_compressed(fh, **arrays), ReferenceSetError)
 
 
 def load_reference_set(path: str | Path, mesh: Mesh | None = None) -> ReferenceSet:

@@ -153,9 +153,7 @@ def draw_matches(img_q: np.ndarray, img_r: np.ndarray, kq: np.ndarray, kr: np.nd
 
 
 def save_png(path: str | Path, rgb: np.ndarray) -> Path:
-    """Write an RGB (or grey) image as PNG, creating the folder."""
-    path = Path(path)
-    path.parent.mkdir(parents=True, exist_ok=True)
-    if not cv2.imwrite(str(path), _rgb(rgb)[..., ::-1]):
-        raise OSError(f"cannot write image {path}")
-    return path
+    """Write an RGB (or grey) image as PNG at exactly ``path`` (whatever its suffix), atomically, creating the folder."""
+    from pixie.outputs import write_atomic
+
+    return write_atomic(path, encode_png(rgb))
