@@ -37,8 +37,8 @@ def _add_config_args(p: argparse.ArgumentParser) -> None:
 
 
 def _add_parallel_args(p: argparse.ArgumentParser) -> None:
-    p.add_argument("--threads", type=int, default=1, help="torch/OpenCV threads per process (default 1; serial and "
-                   "Ray runs give identical results at the same value)")
+    p.add_argument("--threads", type=int, default=None, help="torch/OpenCV threads per process (default 1 for batch "
+                   "and dataset runs, serial or Ray alike, so both give identical results; one --image: torch's default)")
     p.add_argument("--ray", action="store_true", help="spread the work over Ray workers (pip install 'pixie-pose[ray]')")
     p.add_argument("--address", help="Ray cluster to join (auto, HOST:PORT or ray://HOST:10001); default: a local "
                    "Ray on this machine's CPUs")
@@ -165,6 +165,10 @@ def cmd_estimate(args: argparse.Namespace) -> int:
     from pixie.weights import cache_dir
 
     cfg = _config(args)
+    if args.threads:
+        from pixie.cluster import set_threads
+
+        set_threads(args.threads)
     if args.K is None:
         raise PixieError("--K fx,fy,cx,cy is needed (the camera intrinsics in pixels)")
     if args.bbox is None and args.mask is None:
@@ -219,7 +223,7 @@ def _estimate_batch(args: argparse.Namespace) -> int:
     refs, refs_path = _refs_for_estimate(args, cfg, out / "refs")
     _use_stored_matcher(cfg, refs, args.set)
     del refs
-    s = run_batch(items, out, cfg, refs_path, threads=args.threads, use_ray=args.ray, address=args.address,
+    s = run_batch(items, out, cfg, refs_path, threads=args.threads or 1, use_ray=args.ray, address=args.address,
                   workers=args.workers, overlays=not args.no_overlays, max_items=args.max_items)
     print(f"{s.n_items} images: {s.n_cached} cached, {s.n_run} run ({s.n_failed} failed in all) in {s.seconds:.0f} s"
           f"{f' on {s.workers} Ray workers' if args.ray else ''}")
@@ -272,7 +276,8 @@ def cmd_run(args: argparse.Namespace) -> int:
     objects = None if not args.objects else [int(o) for o in args.objects.split(",")]
     t0 = time.perf_counter()
     csv = run_dataset(args.dataset, args.output, cfg, objects=objects, max_targets=args.max_targets,
-                      refs_dir=args.refs_dir)
+                      refs_dir=args.refs_dir, threads=args.threads or 1, use_ray=args.ray, address=args.address,
+                      workers=args.workers)
     print(f"results -> {csv} ({time.perf_counter() - t0:.0f} s); scoring")
     run_eval(args.dataset, csv, args.output, report=not args.no_report,
              only_estimated=args.max_targets is not None or args.objects is not None)
@@ -335,6 +340,7 @@ def build_parser() -> argparse.ArgumentParser:
     r.add_argument("--max-targets", type=int)
     r.add_argument("--refs-dir", help="cache of reference sets (default OUT/refs)")
     r.add_argument("--no-report", action="store_true")
+    _add_parallel_args(r)
     _add_config_args(r)
     r.set_defaults(func=cmd_run)
 

@@ -57,15 +57,23 @@ def cached_reference_set(mesh: Mesh, cfg: PixieConfig, cache_dir: str | Path, ma
 def run_dataset(dataset_root: str | Path, out_dir: str | Path, config: PixieConfig | None = None,
                 objects: list[int] | None = None, max_targets: int | None = None,
                 refs_dir: str | Path | None = None, echo: Callable[[str], None] = print,
-                show_progress: bool = True) -> Path:
+                show_progress: bool = True, threads: int | None = None, use_ray: bool = False,
+                address: str | None = None, workers: int | None = None) -> Path:
     """Estimate every target of a BOP dataset (GT ``bbox_visib`` as the crop) and write ``results.csv``.
 
     Per-target results are appended to ``out_dir/per_target.jsonl`` as they come, so an interrupted
     run resumes where it stopped. Returns the path of the BOP CSV.
+
+    ``threads`` fixes torch/OpenCV threads for the run (``None``: leave them as they are). With ``use_ray`` the
+    reference sets are built here first (once, into ``refs_dir``) and Ray workers (:func:`pixie.cluster.ray_map`,
+    ``threads`` each, default 1) load them from there; the results equal a serial run's at the same ``threads``.
     """
     from pixie.estimator import PoseEstimator
 
     cfg = config or PixieConfig()
+    if use_ray:
+        return _run_dataset_ray(dataset_root, out_dir, cfg, objects, max_targets, refs_dir, echo, show_progress,
+                                threads or 1, address, workers)
     ds = BopDataset(dataset_root)
     out = Path(out_dir)
     out.mkdir(parents=True, exist_ok=True)
@@ -80,6 +88,9 @@ def run_dataset(dataset_root: str | Path, out_dir: str | Path, config: PixieConf
     (out / "config.json").write_text(json.dumps(cfg.to_dict(), indent=1))
     bar = _progress(len(todo), show_progress)
     matcher = make_matcher(cfg) if todo else None
+    from pixie.cluster import set_threads
+
+    before = set_threads(threads) if threads else None
     with open(jsonl, "a") as fh:
         for obj_id in sorted({t.obj_id for t in todo}):
             mesh = load_mesh(ds.model_path(obj_id))
@@ -92,11 +103,89 @@ def run_dataset(dataset_root: str | Path, out_dir: str | Path, config: PixieConf
                 fh.flush()
                 bar.update(1)
     bar.close()
+    if before is not None:
+        set_threads(before)
+    return _write_csv(out, targets, jsonl)
+
+
+def _write_csv(out: Path, targets: list[Target], jsonl: Path) -> Path:
     done = _read_done(jsonl)
     ests = [e for t in targets for e in done.get(_tkey(t), [])]
     csv = out / "results.csv"
     write_results_csv(csv, [_estimate(e) for e in ests if e["T"] is not None])  # a missing pose counts as a miss
     return csv
+
+
+def _run_dataset_ray(dataset_root, out_dir, cfg: PixieConfig, objects, max_targets, refs_dir, echo, show_progress,
+                     threads: int, address: str | None, workers: int | None) -> Path:
+    """:func:`run_dataset` on Ray workers: reference sets built here once, workers load them from ``refs_dir``."""
+    from pixie.cluster import WorkerSpec, ray_map, set_threads
+
+    ds = BopDataset(dataset_root)
+    out = Path(out_dir)
+    out.mkdir(parents=True, exist_ok=True)
+    refs_dir = Path(refs_dir) if refs_dir else out / "refs"
+    targets = [t for t in ds.targets() if objects is None or t.obj_id in objects]
+    if max_targets is not None and len(targets) > max_targets:
+        targets = [targets[i] for i in np.linspace(0, len(targets) - 1, max_targets).round().astype(int)]
+    jsonl = out / "per_target.jsonl"
+    done = _read_done(jsonl)
+    todo = [t for t in targets if _tkey(t) not in done]
+    echo(f"{len(targets)} targets, {len(targets) - len(todo)} cached, {len(todo)} to run -> {out} (Ray"
+         f"{' at ' + address if address else ''})")
+    (out / "config.json").write_text(json.dumps(cfg.to_dict(), indent=1))
+    refs_paths: dict[int, str] = {}
+    if todo:
+        before = set_threads(threads)  # the build too: same threads as the workers, as in a serial run
+        try:
+            matcher = make_matcher(cfg)
+            for obj_id in sorted({t.obj_id for t in todo}):
+                mesh = load_mesh(ds.model_path(obj_id))
+                t0 = time.perf_counter()
+                cached_reference_set(mesh, cfg, refs_dir, matcher=matcher)
+                refs_paths[obj_id] = str(reference_cache_path(mesh, cfg, refs_dir).resolve())
+                echo(f"obj {obj_id}: reference set ready in {time.perf_counter() - t0:.1f} s")
+        finally:
+            set_threads(before)
+    todo.sort(key=lambda t: (t.obj_id, t.scene_id, t.im_id))  # workers keep the estimator of the object at hand
+    bar = _progress(len(todo), show_progress)
+    spec = WorkerSpec(_setup_bop, _process_bop, {"dataset": str(Path(dataset_root).resolve()), "config": cfg.to_dict(),
+                                                 "refs": refs_paths}, threads)
+    with open(jsonl, "a") as fh:
+        def on_result(_: int, rec: dict) -> None:
+            fh.write(json.dumps(rec) + "\n")
+            fh.flush()
+            bar.update(1)
+
+        try:
+            n = ray_map(spec, [[t.scene_id, t.im_id, t.obj_id, t.inst_count] for t in todo], on_result, workers, address)
+        finally:
+            bar.close()
+    if todo:
+        echo(f"{len(todo)} targets on {n} Ray workers")
+    return _write_csv(out, targets, jsonl)
+
+
+def _setup_bop(args: dict) -> dict:
+    """Ray worker state: the dataset, the config, the reference-set files, one matcher, estimators on demand."""
+    cfg = PixieConfig.from_dict(args["config"])
+    return {"ds": BopDataset(args["dataset"]), "cfg": cfg, "refs": {int(k): v for k, v in args["refs"].items()},
+            "matcher": make_matcher(cfg), "est": {}}
+
+
+def _process_bop(state: dict, item: list[int]) -> dict:
+    """One target on a Ray worker; estimators are kept for the last two objects only (memory)."""
+    from pixie.estimator import PoseEstimator
+
+    scene_id, im_id, obj_id, inst_count = item
+    ests = state["est"]
+    if obj_id not in ests:
+        ds = state["ds"]
+        refs = load_reference_set(state["refs"][obj_id], mesh=load_mesh(ds.model_path(obj_id)))
+        while len(ests) >= 2:
+            ests.pop(next(iter(ests)))
+        ests[obj_id] = PoseEstimator(refs, PixieConfig.from_dict(state["cfg"].to_dict()), matcher=state["matcher"])
+    return _run_target(state["ds"], ests[obj_id], Target(scene_id, im_id, obj_id, inst_count))
 
 
 def _run_target(ds: BopDataset, est, t: Target) -> dict:
