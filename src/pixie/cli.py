@@ -25,7 +25,10 @@ def _config(args: argparse.Namespace) -> PixieConfig:
     cfg = PixieConfig.from_preset(getattr(args, "preset", None) or DEFAULT_PRESET)
     if getattr(args, "config", None):
         cfg.update_from_yaml(args.config)
-    return cfg.apply_overrides(getattr(args, "set", None))
+    cfg.apply_overrides(getattr(args, "set", None))
+    if getattr(args, "device", None):
+        cfg.match.device = args.device
+    return cfg
 
 
 def _add_config_args(p: argparse.ArgumentParser) -> None:
@@ -34,6 +37,8 @@ def _add_config_args(p: argparse.ArgumentParser) -> None:
                        f"{n}: {preset_about(n)}" for n in preset_names()) + f" (default {DEFAULT_PRESET})")
     p.add_argument("--config", help="YAML file with config sections (refs, query, match, pose, refine), applied over the preset")
     p.add_argument("--set", action="append", metavar="SECTION.KEY=VALUE", help="override one config value (repeatable)")
+    p.add_argument("--device", choices=["auto", "cpu", "cuda"], help="where the learned matcher runs (the presets say "
+                   "auto: CUDA when torch sees a GPU, else CPU); rendering and PnP run on the CPU")
 
 
 def _add_parallel_args(p: argparse.ArgumentParser) -> None:

@@ -92,9 +92,12 @@ def main(argv: list[str] | None = None) -> int:
     ap.add_argument("--im-id", type=int, default=17)
     ap.add_argument("--obj-id", type=int, default=5)
     ap.add_argument("--preset", default="default", help="configuration preset (fast, default, paper)")
+    ap.add_argument("--device", choices=["auto", "cpu", "cuda"], help="where the matcher runs (default: the preset's, auto)")
     args = ap.parse_args(argv)
     out = Path(args.out) if args.out else default_out()
     cfg = PixieConfig.from_preset(args.preset)
+    if args.device:
+        cfg.match.device = args.device
     lmo = lmo_dir()
 
     if lmo is not None and not args.synthetic:
