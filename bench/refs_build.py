@@ -68,6 +68,8 @@ def main(argv: list[str] | None = None) -> int:
     ap.add_argument("--dataset", type=Path, default=DEFAULT_DATASET)
     ap.add_argument("--preset", choices=preset_names(), help="build as `pixie refs build --preset NAME` (with features)")
     ap.add_argument("--threads", type=int, default=None, help="torch/OpenCV threads (default: torch's)")
+    ap.add_argument("--keep", type=Path, help="with --preset: keep the sets in this folder under the names `pixie run` "
+                    "caches them by (its --refs-dir), instead of deleting them")
     ap.add_argument("--objects", default=None, help="comma-separated object ids (default: every model)")
     ap.add_argument("--size", type=int, default=RefsConfig().size, help="reference image side, px")
     ap.add_argument("--workers", type=int, default=1, help="render/encode processes")
@@ -119,10 +121,16 @@ def main(argv: list[str] | None = None) -> int:
             build_s = time.perf_counter() - t0
             cpu_main = time.process_time() - c0
             t1 = time.perf_counter()
-            out = save_reference_set(refs, Path(tmp) / f"obj_{obj_id:06d}.npz")
+            if args.keep and args.preset:
+                from pixie.runner import reference_cache_path
+
+                out = save_reference_set(refs, reference_cache_path(mesh, full, args.keep))
+            else:
+                out = save_reference_set(refs, Path(tmp) / f"obj_{obj_id:06d}.npz")
             save_s = time.perf_counter() - t1
             size_mb = out.stat().st_size / 1e6
-            out.unlink()
+            if not args.keep:
+                out.unlink()
             n_img = refs.n_views * refs.n_rolls
             row = {
                 "obj_id": obj_id, "faces": int(len(mesh.faces)), "views": refs.n_views, "rolls": refs.n_rolls,
