@@ -34,7 +34,7 @@ def _config(args: argparse.Namespace) -> PixieConfig:
 def _add_config_args(p: argparse.ArgumentParser) -> None:
     p.add_argument("--preset", default=DEFAULT_PRESET, choices=preset_names(),
                    help="starting configuration (src/pixie/configs/*.yaml): " + "; ".join(
-                       f"{n}: {preset_about(n)}" for n in preset_names()) + f" (default {DEFAULT_PRESET})")
+                       f"{n}: {preset_about(n)}" for n in preset_names()).replace("%", "%%") + f" (default {DEFAULT_PRESET})")
     p.add_argument("--config", help="YAML file with config sections (refs, query, match, pose, refine), applied over the preset")
     p.add_argument("--set", action="append", metavar="SECTION.KEY=VALUE", help="override one config value (repeatable)")
     p.add_argument("--device", choices=["auto", "cpu", "cuda"], help="where the learned matcher runs (the presets say "
