@@ -11,3 +11,9 @@ Conventions (everywhere): OpenCV camera (x right, y down, z forward), millimetre
 __version__ = "0.1.0"
 
 from pixie.errors import PixieError  # noqa: F401
+from pixie.api import estimate_pose  # noqa: F401
+from pixie.config import PixieConfig  # noqa: F401
+from pixie.estimator import PoseEstimator  # noqa: F401
+from pixie.mesh import load_mesh  # noqa: F401
+from pixie.query import load_image  # noqa: F401
+from pixie.references import build_reference_set, load_reference_set  # noqa: F401

@@ -166,7 +166,7 @@ def cmd_estimate(args: argparse.Namespace) -> int:
     from pixie.estimator import PoseEstimator
     from pixie.query import load_image
     from pixie.render import Renderer
-    from pixie.viz import overlay_pose, save_png
+    from pixie.viz import overlay_result, save_png
     from pixie.weights import cache_dir
 
     cfg = _config(args)
@@ -193,18 +193,23 @@ def cmd_estimate(args: argparse.Namespace) -> int:
     T = res.T_cam_from_obj
     status = "FAILED (" + res.message + ")" if res.failed else "ok"
     print(f"pose {status}: score {res.score:.1f}, {res.n_inliers} inliers, view {res.view} roll {res.roll}, "
-          f"confidence {res.confidence:.2f}")
+          f"confidence {res.confidence:.2f} (margin over the next hypothesis, not calibrated)")
     if T is not None:
         np.set_printoptions(precision=4, suppress=True)
         print("T_cam_from_obj (mm) =\n" + str(T))
     print("timings (s): " + ", ".join(f"{k} {v:.2f}" for k, v in res.timings.items()))
     if args.output:
         from pixie.outputs import write_atomic
+        from pixie.weights import sha256_file
 
-        write_atomic(args.output, json.dumps(res.to_dict(), indent=1) + "\n")
+        record = res.to_dict()
+        record["image"] = {"path": str(args.image), "sha256": sha256_file(args.image)}
+        record["mask"] = None if not args.mask else {"path": str(args.mask), "sha256": sha256_file(args.mask)}
+        write_atomic(args.output, json.dumps(record, indent=1) + "\n")
         print(f"result -> {args.output}")
     if args.overlay:
-        save_png(args.overlay, overlay_pose(image, Renderer(refs.mesh), T, K))
+        label = f"{'FAILED ' if res.failed else ''}confidence {res.confidence:.2f}"
+        save_png(args.overlay, overlay_result(image, Renderer(refs.mesh), T, K, res.box_xyxy, label))
         print(f"overlay -> {args.overlay}")
     return 1 if res.failed else 0
 

@@ -16,7 +16,7 @@ import numpy as np
 
 from pixie.camera import check_image_K, optical_axis_in_object, rotation_angle_deg
 from pixie.config import PixieConfig
-from pixie.errors import ConfigError, ReferenceSetError
+from pixie.errors import ConfigError, ImageError, ReferenceSetError
 from pixie.pose import PnPResult, box_iou, depth_from_box, lift, projected_box, solve_pnp_ransac
 from pixie.query import QueryCrop, bbox_from_mask, check_bbox, check_query_image, square_crop
 from pixie.references import ReferenceSet, add_features
@@ -42,11 +42,26 @@ class Hypothesis:
     sim_sum: float = 0.0  # summed matcher similarity (cosine for NN backends) of the PnP inliers
     sim_mean: float = 0.0  # its mean over the inliers
     source: str = "reference"  # 'reference' (first pass), 'view_selection', 'recrop' or 'render' (render-at-estimate)
+    confidence: float = 0.0  # set for returned hypotheses: score / (score + the best other distinct score)
+
+
+FRAME = ("OpenCV camera (x right, y down, z forward); T_cam_from_obj maps object points (mm, the mesh's frame) "
+         "to camera points: x_cam = R x_obj + t")
+SCORE_NOTE = ("support of the pose: summed match similarity of its PnP inliers above the photo's background level, "
+              "times rotation-consistency and box-agreement factors (pose.scoring); comparable between the "
+              "hypotheses of one photo only")
+CONFIDENCE_NOTE = ("score / (score + the best distinct alternative's score): how much a hypothesis stands out, "
+                   "0.5 = a tie. Not calibrated: it is not a probability that the pose is correct")
 
 
 @dataclass
 class PoseResult:
-    """What :meth:`PoseEstimator.estimate` returns. ``failed`` results still carry the best guess."""
+    """What :meth:`PoseEstimator.estimate` returns. ``failed`` results still carry the best guess.
+
+    ``T_cam_from_obj`` is in mm, OpenCV camera frame (:data:`FRAME`). ``confidence`` (:data:`CONFIDENCE_NOTE`)
+    is not calibrated. The inputs used are recorded: ``K``, ``box_xyxy`` (the crop box, clipped to the image)
+    and ``box_source`` ('bbox' or 'mask'), the mesh's sha256, the preset, config digest and matcher device.
+    """
 
     T_cam_from_obj: np.ndarray | None
     score: float
@@ -58,17 +73,58 @@ class PoseResult:
     confidence: float = 0.0
     hypotheses: list[Hypothesis] = field(default_factory=list)
     timings: dict[str, float] = field(default_factory=dict)
+    K: np.ndarray | None = None
+    box_xyxy: np.ndarray | None = None
+    box_source: str | None = None
+    mesh_name: str | None = None
+    mesh_sha256: str | None = None
+    preset: str | None = None
+    config_digest: str | None = None
+    device: str | None = None
 
     def to_dict(self) -> dict:
+        """Everything as JSON-able data (poses as nested lists, mm)."""
+        from pixie import __version__
+
+        box = None
+        if self.box_xyxy is not None:
+            x0, y0, x1, y1 = (float(v) for v in self.box_xyxy)
+            box = {"xywh": [x0, y0, x1 - x0, y1 - y0], "source": self.box_source}
         return {
+            "pixie_version": __version__,
+            "units": "mm",
+            "frame": FRAME,
             "T_cam_from_obj": None if self.T_cam_from_obj is None else self.T_cam_from_obj.tolist(),
-            "score": self.score, "n_inliers": self.n_inliers, "failed": self.failed, "message": self.message,
-            "view": self.view, "roll": self.roll, "confidence": self.confidence, "timings": self.timings,
+            "failed": self.failed, "message": self.message,
+            "score": self.score, "score_note": SCORE_NOTE,
+            "confidence": self.confidence, "confidence_note": CONFIDENCE_NOTE,
+            "n_inliers": self.n_inliers, "view": self.view, "roll": self.roll,
+            "K": None if self.K is None else np.asarray(self.K).tolist(),
+            "box": box,
+            "mesh": {"name": self.mesh_name, "sha256": self.mesh_sha256},
+            "mesh_sha256": self.mesh_sha256,
+            "preset": self.preset, "config_digest": self.config_digest, "device": self.device,
+            "timings": self.timings,
             "hypotheses": [
-                {"T_cam_from_obj": h.T_cam_from_obj.tolist(), "score": h.score, "n_inliers": h.n_inliers,
-                 "view": h.view, "roll": h.roll, "source": h.source} for h in self.hypotheses
+                {"T_cam_from_obj": h.T_cam_from_obj.tolist(), "score": h.score, "confidence": h.confidence,
+                 "n_inliers": h.n_inliers, "view": h.view, "roll": h.roll, "source": h.source} for h in self.hypotheses
             ],
         }
+
+
+NO_BOX_MESSAGE = ("no object box: pass bbox=(x, y, w, h) in pixels (w, h counting pixels) or mask=... (white/True = "
+                  "object); pixie does not guess where the object is (the box sets the crop and the object's distance). "
+                  "To use the whole image on purpose pass bbox=(0, 0, width, height)")
+
+
+def set_confidences(hyps: list[Hypothesis]) -> None:
+    """Each hypothesis's confidence: its score / (its score + the best score among the others); 0 for score 0.
+
+    For the best of ``hyps`` (distinct poses, best first) this is best / (best + second).
+    """
+    for i, h in enumerate(hyps):
+        other = max((g.score for j, g in enumerate(hyps) if j != i), default=0.0)
+        h.confidence = float(h.score / (h.score + other)) if h.score > 0 else 0.0
 
 
 class PoseEstimator:
@@ -134,8 +190,11 @@ class PoseEstimator:
         timings: dict[str, float] = {}
         image = check_query_image(image)
         K = check_image_K(K, image.shape[:2])
+        if bbox is None and mask is None:
+            raise ImageError(NO_BOX_MESSAGE)
+        box_source = "bbox" if bbox is not None else "mask"
         if bbox is None:
-            bbox = bbox_from_mask(mask) if mask is not None else np.array([0, 0, image.shape[1], image.shape[0]])
+            bbox = bbox_from_mask(mask)
         box = check_bbox(bbox, image.shape[:2])
         use_mask = mask if (mask is not None and self.cfg.query.mask_keypoints) else None
 
@@ -168,7 +227,8 @@ class PoseEstimator:
             hyps = self._render_refine(hyps, crops[0], qfeats[0], K, box)
             timings["render_refine"] = time.perf_counter() - t
         timings["total"] = time.perf_counter() - t_all
-        return self._result(hyps, box, K, timings)
+        res = self._result(hyps, box, K, timings)
+        return self._record_inputs(res, K, box, box_source)
 
     # ------------------------------------------------------------------------------------------------
     def _crops(self, image: np.ndarray, box: np.ndarray, mask: np.ndarray | None) -> list[QueryCrop]:
@@ -423,13 +483,21 @@ class PoseEstimator:
                 out.append(h)
         return out
 
+    def _record_inputs(self, res: PoseResult, K: np.ndarray, box: np.ndarray, box_source: str) -> PoseResult:
+        """Note on ``res`` what it was computed from (for results people can trace)."""
+        res.K, res.box_xyxy, res.box_source = np.asarray(K, np.float64), np.asarray(box, np.float64), box_source
+        res.mesh_name, res.mesh_sha256 = self.refs.mesh.name, self.refs.mesh.source_hash
+        res.preset, res.config_digest = self.cfg.preset, self.cfg.digest()
+        res.device = str(getattr(self.matcher, "device", "cpu"))
+        return res
+
     def _result(self, hyps: list[Hypothesis], box, K, timings) -> PoseResult:
         if not hyps:
             return PoseResult(None, 0.0, 0, True, "no pose: too few 2D-3D matches survived PnP+RANSAC", timings=timings)
         best = hyps[0]
         distinct = self._distinct(hyps, self.cfg.refine.n_hypotheses)
-        second = distinct[1].score if len(distinct) > 1 else 0.0
-        confidence = float(best.score / (best.score + second)) if best.score > 0 else 0.0
+        set_confidences(distinct)
+        confidence = distinct[0].confidence
         failed = best.n_inliers < max(self.cfg.pose.min_inliers, 1) or best.score <= 0
         msg = "ok" if not failed else "low support"
         return PoseResult(best.T_cam_from_obj, best.score, best.n_inliers, failed, msg, best.view, best.roll,
