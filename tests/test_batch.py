@@ -143,3 +143,14 @@ def test_ray_batch_equals_serial(batch_inputs, tmp_path):
     assert s.workers == 2 and s.n_run == 3
     assert _poses(dist) == _poses(serial)  # bit-identical poses (JSON floats round-trip exactly)
     assert _csv_without_time(dist / "results.csv") == _csv_without_time(serial / "results.csv")
+
+
+def test_estimator_refuses_no_box(batch_inputs):
+    from pixie.estimator import PoseEstimator
+    from pixie.query import load_image
+    from pixie.references import load_reference_set
+
+    root, refs_path, cfg, rows = batch_inputs
+    est = PoseEstimator(load_reference_set(refs_path), cfg)
+    with pytest.raises(ImageError, match=r"no object box: pass bbox=\(x, y, w, h\).*mask="):
+        est.estimate(load_image(root / rows[0][0]), rows[0][1])
