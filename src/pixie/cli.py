@@ -387,6 +387,10 @@ def main(argv: list[str] | None = None) -> int:
     except PixieError as exc:
         print(f"pixie: error: {exc}", file=sys.stderr)
         return 2
+    except KeyboardInterrupt:
+        print("\npixie: interrupted; finished work is kept (batch and dataset runs resume when run again)",
+              file=sys.stderr)
+        return 130
 
 
 if __name__ == "__main__":
