@@ -55,7 +55,7 @@ sys.path.insert(0, str(REPO / "src"))
 
 from pixie import metrics as M  # noqa: E402
 from pixie.config import PixieConfig  # noqa: E402
-from pixie.datasets import BopDataset, PoseEstimate, Target, symmetry_transforms, write_results_csv  # noqa: E402
+from pixie.eval.datasets import BopDataset, PoseEstimate, Target, symmetry_transforms, write_results_csv  # noqa: E402
 from pixie.mesh import Mesh, load_mesh  # noqa: E402
 
 DEFAULT_DATA = REPO / "out/bench/defects_data"

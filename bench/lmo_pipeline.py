@@ -48,7 +48,7 @@ sys.path.insert(0, str(REPO / "src"))
 
 from pixie import metrics as M  # noqa: E402
 from pixie.config import PixieConfig  # noqa: E402
-from pixie.datasets import BopDataset, PoseEstimate, Target, write_results_csv  # noqa: E402
+from pixie.eval.datasets import BopDataset, PoseEstimate, Target, write_results_csv  # noqa: E402
 
 DEFAULT_DATASET = REPO.parent / "shared/data/lmo_dev/lmo"
 DEFAULT_OUT = REPO / "out/bench/lmo_pipeline"

@@ -33,7 +33,7 @@ def lmo_dir() -> Path:
 
 @pytest.fixture(scope="session")
 def lmo_dataset(lmo_dir):
-    from pixie.datasets import BopDataset
+    from pixie.eval.datasets import BopDataset
 
     return BopDataset(lmo_dir)
 

@@ -11,7 +11,7 @@ import pytest
 import trimesh
 
 from pixie.camera import make_K, make_T
-from pixie.datasets import BopDataset, PoseEstimate, gt_as_estimates, write_results_csv
+from pixie.eval.datasets import BopDataset, PoseEstimate, gt_as_estimates, write_results_csv
 from pixie.eval import evaluate, format_table, run_eval
 from pixie.mesh import from_arrays
 from pixie.render import Renderer, composite

@@ -19,13 +19,14 @@ from __future__ import annotations
 import numpy as np
 
 from pixie.synth.assemblies import (
-    STUD_PITCH,
     Assembly,
-    Part,
-    brick_part,
     bracket_part,
+    brick_part,
     cylinder_part,
+    Part,
+    plate_with_holes_part,
     shaft_part,
+    STUD_PITCH,
 )
 
 DEFECT_TYPES = ("missing", "shifted", "rotated", "wrong", "extra")
@@ -171,8 +172,6 @@ def _substitute(p: Part, rng: np.random.Generator) -> Part:
         pr["lx"] = pr["lx"] * rng.uniform(0.7, 0.9)
         return bracket_part(pr["lx"], pr["ly"], pr["lz"], pr["t"], pr["hole_r"], p.transform.copy(), name=f"{p.name}_wrong")
     if p.kind == "plate":
-        from pixie.synth.assemblies import plate_with_holes_part
-
         pr = p.params
         q = plate_with_holes_part(pr["lx"] * rng.uniform(0.6, 0.85), pr["ly"], pr["t"] * 1.5,
                                   [h for h in pr["holes"] if h[0] < pr["lx"] * 0.6], T=p.transform.copy(),

@@ -22,10 +22,13 @@ from dataclasses import dataclass, field
 
 import numpy as np
 
-from pixie.camera import make_T, rot_z
+from pixie.camera import backproject, invert_T, make_T, rot_z
 from pixie.encode import encode
 from pixie.mesh import Mesh
-from pixie.render import Renderer, composite
+from pixie.query import square_crop
+from pixie.render import composite, Renderer
+from pixie.synth import photo
+from pixie.synth.parts import random_part
 from pixie.views import camera_distance, crop_K, square_crop_K, start_K
 
 ENCODINGS = ("shade3_edges", "depth", "normal")
@@ -108,8 +111,6 @@ class Pair:
         query crop onto a pixel that shows the target with (nearly) the same object XYZ (within ``tol`` mm,
         default 1.5 % of the diameter: the point is not occluded in the query).
         """
-        from pixie.camera import backproject, invert_T
-
         kp_r = np.asarray(kp_r, np.float64).reshape(-1, 2)
         H, W = self.ref_depth.shape
         ix = np.clip(np.rint(kp_r[:, 0]).astype(int), 0, W - 1)
@@ -181,9 +182,6 @@ def reference_pose(mesh: Mesh, R_query: np.ndarray, t_query: np.ndarray, rng: np
 def make_pair(seed: int, cfg: PairConfig | None = None, part_seed: int | None = None,
               parts_fn=None) -> Pair:
     """Build one labelled pair from ``seed`` (the target part is ``parts_fn(part_seed)``, default seed)."""
-    from pixie.synth import photo
-    from pixie.synth.parts import random_part
-
     cfg = cfg or PairConfig()
     parts_fn = parts_fn or random_part
     rng = np.random.default_rng([int(seed), 424242])
@@ -225,8 +223,6 @@ def make_pair(seed: int, cfg: PairConfig | None = None, part_seed: int | None = 
     rgb = photo.degrade(res.rgb, rng) if cfg.degrade else res.rgb
 
     # Query crop around the (jittered) visible box, exactly like pixie.query.square_crop.
-    from pixie.query import square_crop
-
     ys, xs = np.nonzero(vis)
     box = np.array([xs.min(), ys.min(), xs.max() + 1, ys.max() + 1], np.float64)
     wh = box[2:] - box[:2]

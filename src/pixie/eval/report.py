@@ -11,21 +11,20 @@ import html
 import io
 import math
 from pathlib import Path
-from typing import TYPE_CHECKING
 
+import cv2
 import numpy as np
 
-from pixie.viz import EST_COLOR, GT_COLOR, draw_contours
-
-if TYPE_CHECKING:  # pragma: no cover
-    from pixie.datasets import BopDataset
-    from pixie.eval import ObjectData, Scores, TargetResult
+from pixie.eval.datasets import BopDataset
+from pixie.eval.objects import load_object_data, ObjectData
+from pixie.eval.scores import Scores, TargetResult
+from pixie.eval.writers import format_table
+from pixie.geometry import orthonormalize
+from pixie.viz import draw_contours, EST_COLOR, GT_COLOR
 
 
 def png_base64(rgb: np.ndarray) -> str:
     """Encode an RGB uint8 image as a base64 PNG string."""
-    import cv2
-
     ok, buf = cv2.imencode(".png", cv2.cvtColor(np.ascontiguousarray(rgb), cv2.COLOR_RGB2BGR))
     if not ok:
         raise ValueError("PNG encoding failed")
@@ -82,8 +81,6 @@ def error_histograms(scores: "Scores", diameters: dict[int, float]) -> list[tupl
 
 def overlay_target(dataset: "BopDataset", target: "TargetResult", renderer, pad: int = 40) -> np.ndarray:
     """RGB crop with the model contour at the GT (green) and at the estimate (red)."""
-    from pixie.datasets import orthonormalize
-
     rgb = dataset.load_rgb(target.scene_id, target.im_id)
     h, w = rgb.shape[:2]
     K = dataset.camera(target.scene_id, target.im_id).K
@@ -100,8 +97,6 @@ def overlay_target(dataset: "BopDataset", target: "TargetResult", renderer, pad:
         x0, x1 = max(xs.min() - pad, 0), min(xs.max() + pad + 1, w)
         img = img[y0:y1, x0:x1]
     if img.shape[0] < 160:  # small objects: enlarge the crop so the contours stay readable
-        import cv2
-
         f = int(math.ceil(160 / max(img.shape[0], 1)))
         img = cv2.resize(img, (img.shape[1] * f, img.shape[0] * f), interpolation=cv2.INTER_NEAREST)
     return img
@@ -153,8 +148,6 @@ def write_report(
         first available error); 0 disables overlays
     objects : ObjectData cache from the evaluation, reused for its renderers
     """
-    from pixie.eval import format_table, load_object_data
-
     out = Path(out_dir)
     out.mkdir(parents=True, exist_ok=True)
     objects = {} if objects is None else objects

@@ -9,18 +9,18 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-from pixie.datasets import (
+from pixie.eval.datasets import (
     BopDataset,
     PoseEstimate,
     box_from_bop,
     gt_as_estimates,
     is_symmetric,
-    orthonormalize,
     read_results_csv,
     symmetry_transforms,
     write_results_csv,
 )
 from pixie.errors import DatasetError, ImageError
+from pixie.geometry import orthonormalize
 from pixie.query import check_bbox
 
 LMO = Path(__file__).resolve().parents[1].parent / "shared/data/lmo_dev/lmo"
