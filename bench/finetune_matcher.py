@@ -103,7 +103,7 @@ class CachedAliked:
                  detection_threshold: float | None = None):
         import torch
 
-        from pixie.matching import AlikedExtractor
+        from pixie.matching.aliked import AlikedExtractor
 
         self.cache_dir = Path(cache_dir)
         self.cache_dir.mkdir(parents=True, exist_ok=True)
@@ -139,7 +139,7 @@ class CachedAliked:
             self._inner = self._inner or self._factory()
             if self.grid and mask is not None:
                 from pixie.matching.adapter import aliked_extract
-                from pixie.matching import check_image
+                from pixie.geometry import check_image
 
                 img = check_image(image)
                 kp, desc, sc, _ = aliked_extract(self._inner.net, img, np.asarray(mask, bool), self.grid)

@@ -85,7 +85,7 @@ def cmd_refs_show(args: argparse.Namespace) -> int:
     views = None if args.views is None else [int(v) for v in args.views.split(",")]
     sheet = contact_sheet(refs, args.encodings.split(",") if args.encodings else None, views, tile=args.tile)
     save_png(args.output, sheet)
-    feats = ", ".join(f"{k} ({len(v['feat_image_sizes'])} images)" for k, v in refs.features.items()) or "none"
+    feats = ", ".join(f"{k} ({len(refs.features_for(*k.split('/', 1))[0])} images)" for k in refs.features) or "none"
     print(f"{args.refs}: {refs.mesh.name}, {refs.n_views} views x {refs.n_rolls} rolls at {refs.size} px; "
           f"features: {feats}; sheet -> {args.output}")
     return 0

@@ -106,8 +106,11 @@ class Journal:
         self.path = Path(path)
         self.key = key
         self.records: dict[Hashable, dict] = {}
+        self._cut = False  # the file ends inside a line (a killed write): the next record starts a new line
         if self.path.is_file():
-            for line in self.path.read_text().splitlines():
+            text = self.path.read_text()
+            self._cut = bool(text) and not text.endswith("\n")
+            for line in text.splitlines():
                 try:
                     rec = json.loads(line)
                     self.records[key(rec)] = rec
@@ -127,8 +130,9 @@ class Journal:
         """Write ``record`` as one line (flushed) and remember it."""
         self.path.parent.mkdir(parents=True, exist_ok=True)
         with open(self.path, "a") as fh:
-            fh.write(json.dumps(record) + "\n")
+            fh.write(("\n" if self._cut else "") + json.dumps(record) + "\n")
             fh.flush()
+        self._cut = False
         self.records[self.key(record)] = record
         return record
 

@@ -20,7 +20,7 @@ from pixie.eval.objects import load_object_data, ObjectData
 from pixie.eval.scores import Scores, TargetResult
 from pixie.eval.writers import format_table
 from pixie.geometry import orthonormalize
-from pixie.viz import draw_contours, EST_COLOR, GT_COLOR
+from pixie.viz import EST_COLOR, GT_COLOR, draw_contours
 
 
 def png_base64(rgb: np.ndarray) -> str:
@@ -40,7 +40,7 @@ def _fig_base64(fig) -> str:
     return base64.b64encode(bio.getvalue()).decode("ascii")
 
 
-def error_histograms(scores: "Scores", diameters: dict[int, float]) -> list[tuple[str, str]]:
+def error_histograms(scores: Scores, diameters: dict[int, float]) -> list[tuple[str, str]]:
     """Histograms of the per-target errors: list of (title, base64 PNG).
 
     MSSD and ADD family are shown relative to the diameter, MSPD in px, VSD as the mean over taus.
@@ -79,7 +79,7 @@ def error_histograms(scores: "Scores", diameters: dict[int, float]) -> list[tupl
     return out
 
 
-def overlay_target(dataset: "BopDataset", target: "TargetResult", renderer, pad: int = 40) -> np.ndarray:
+def overlay_target(dataset: BopDataset, target: TargetResult, renderer, pad: int = 40) -> np.ndarray:
     """RGB crop with the model contour at the GT (green) and at the estimate (red)."""
     rgb = dataset.load_rgb(target.scene_id, target.im_id)
     h, w = rgb.shape[:2]
@@ -102,7 +102,7 @@ def overlay_target(dataset: "BopDataset", target: "TargetResult", renderer, pad:
     return img
 
 
-def _rank_key(t: "TargetResult", diameters: dict[int, float]) -> float:
+def _rank_key(t: TargetResult, diameters: dict[int, float]) -> float:
     for key, rel in (("mssd", True), ("ad", True), ("mspd", False), ("vsd", False), ("add", True)):
         if key in t.errors:
             v = t.errors[key]
@@ -110,7 +110,7 @@ def _rank_key(t: "TargetResult", diameters: dict[int, float]) -> float:
     return 0.0
 
 
-def _table_html(scores: "Scores") -> str:
+def _table_html(scores: Scores) -> str:
     keys = [k for k in scores.overall if k not in ("n_missing",)]
     head = "".join(f"<th>{html.escape(k)}</th>" for k in ["object", *keys])
     rows = []
@@ -131,11 +131,11 @@ def _table_html(scores: "Scores") -> str:
 
 
 def write_report(
-    scores: "Scores",
-    dataset: "BopDataset",
+    scores: Scores,
+    dataset: BopDataset,
     out_dir: str | Path,
     n_overlays: int = 4,
-    objects: dict[int, "ObjectData"] | None = None,
+    objects: dict[int, ObjectData] | None = None,
     title: str | None = None,
 ) -> Path:
     """Write ``out_dir/report.html`` and return its path.
