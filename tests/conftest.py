@@ -202,10 +202,18 @@ SYN_K = np.array([[500.0, 0.0, 160.0], [0.0, 500.0, 120.0], [0.0, 0.0, 1.0]])
 SYN_H, SYN_W = 240, 320
 
 
-def _rotvec(axis, deg):
+def rotvec(axis, deg):
+    """Rotation matrix of ``deg`` degrees about ``axis`` (test helper: ``from conftest import rotvec``)."""
     from scipy.spatial.transform import Rotation
 
     return Rotation.from_rotvec(np.radians(deg) * np.asarray(axis, float) / np.linalg.norm(axis)).as_matrix()
+
+
+def box_mesh(extents, center=(0.0, 0.0, 0.0)):
+    """A box :class:`~pixie.mesh.Mesh` (test helper: ``from conftest import box_mesh``)."""
+    b = trimesh.creation.box(extents=extents)
+    b.apply_translation(center)
+    return from_arrays(b.vertices, b.faces, name="box")
 
 
 def build_synthetic_bop(root: Path) -> dict:
@@ -223,8 +231,8 @@ def build_synthetic_bop(root: Path) -> dict:
     info["2"]["symmetries_continuous"] = [{"axis": [0, 0, 1], "offset": [0, 0, 0]}]
     (root / "models" / "models_info.json").write_text(json.dumps(info))
     scenes = {
-        0: [(1, make_T(_rotvec([1, 1, 0], 30), [-60.0, 0.0, 600.0])), (2, make_T(_rotvec([1, 0, 0], 70), [70.0, 10.0, 650.0]))],
-        1: [(1, make_T(_rotvec([0, 1, 1], 20), [-70.0, 0.0, 620.0])), (1, make_T(_rotvec([1, 0, 1], 50), [60.0, 5.0, 560.0]))],
+        0: [(1, make_T(rotvec([1, 1, 0], 30), [-60.0, 0.0, 600.0])), (2, make_T(rotvec([1, 0, 0], 70), [70.0, 10.0, 650.0]))],
+        1: [(1, make_T(rotvec([0, 1, 1], 20), [-70.0, 0.0, 620.0])), (1, make_T(rotvec([1, 0, 1], 50), [60.0, 5.0, 560.0]))],
     }
     sc = root / "test" / "000001"
     for sub in ("rgb", "depth"):

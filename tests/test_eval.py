@@ -7,6 +7,7 @@ import math
 
 import numpy as np
 import pytest
+from conftest import rotvec
 
 from pixie.camera import make_K, make_T
 from pixie.eval.datasets import BopDataset, PoseEstimate, gt_as_estimates, write_results_csv
@@ -14,12 +15,6 @@ from pixie.eval import evaluate, format_table, run_eval
 
 K = make_K(500.0, 500.0, 160.0, 120.0)
 H, W = 240, 320
-
-
-def _rot(axis, deg):
-    from scipy.spatial.transform import Rotation
-
-    return Rotation.from_rotvec(np.radians(deg) * np.asarray(axis, float) / np.linalg.norm(axis)).as_matrix()
 
 
 @pytest.fixture(scope="module")
@@ -63,7 +58,7 @@ def test_synthetic_continuous_symmetry(synth):
     """The cylinder turned about its axis: MSSD within the discretisation, ADD-S ~ 0, ADD large."""
     ds, meta = synth
     ests = _gt_ests(meta)
-    ests[1].T_cam_from_obj = ests[1].T_cam_from_obj @ make_T(_rot([0, 0, 1], 37.0), np.zeros(3))
+    ests[1].T_cam_from_obj = ests[1].T_cam_from_obj @ make_T(rotvec([0, 0, 1], 37.0), np.zeros(3))
     s = evaluate(ds, ests, metrics=["mssd", "add", "adds", "ad"])
     t = next(t for t in s.targets if t.obj_id == 2)
     d = ds.model_info(2)["diameter"]

@@ -20,7 +20,6 @@ from pixie.eval.datasets import (
     write_results_csv,
 )
 from pixie.errors import DatasetError, ImageError
-from pixie.geometry import orthonormalize
 from pixie.query import check_bbox
 
 LMO = Path(__file__).resolve().parents[1].parent / "shared/data/lmo_dev/lmo"
@@ -145,17 +144,6 @@ def test_continuous_symmetry_discretisation():
     S2 = symmetry_transforms({**info, "symmetries_discrete": [flip]}, step)
     assert len(S2) == 2 * n
     np.testing.assert_allclose(S2[n], S[0] @ np.diag([1.0, -1.0, -1.0, 1.0]))
-
-
-def test_orthonormalize():
-    rng = np.random.default_rng(0)
-    T = np.eye(4)
-    T[:3, :3] += rng.normal(0, 1e-3, (3, 3))
-    T[:3, 3] = [1, 2, 3]
-    U = orthonormalize(T)
-    np.testing.assert_allclose(U[:3, :3] @ U[:3, :3].T, np.eye(3), atol=1e-12)
-    assert np.linalg.det(U[:3, :3]) == pytest.approx(1.0)
-    np.testing.assert_array_equal(U[:3, 3], [1, 2, 3])
 
 
 # ---------------------------------------------------------------------------- errors

@@ -6,27 +6,14 @@ import math
 
 import numpy as np
 import pytest
-import trimesh
+from conftest import box_mesh, rotvec
 
-from pixie.eval import errors as M
 from pixie.camera import make_K, make_T
-from pixie.mesh import from_arrays
+from pixie.eval import errors as M
 from pixie.render import Renderer
 
 K = make_K(500.0, 500.0, 160.0, 120.0)
 H, W = 240, 320
-
-
-def _box(extents, center=(0.0, 0.0, 0.0)):
-    b = trimesh.creation.box(extents=extents)
-    b.apply_translation(center)
-    return from_arrays(b.vertices, b.faces, name="box")
-
-
-def _rot(axis, deg):
-    from scipy.spatial.transform import Rotation
-
-    return Rotation.from_rotvec(np.radians(deg) * np.asarray(axis, float) / np.linalg.norm(axis)).as_matrix()
 
 
 @pytest.fixture(scope="module")
@@ -35,7 +22,7 @@ def pts():
     return rng.uniform(-50, 50, (500, 3))
 
 
-T_GT = make_T(_rot([1, 2, 3], 40), [10.0, -20.0, 600.0])
+T_GT = make_T(rotvec([1, 2, 3], 40), [10.0, -20.0, 600.0])
 
 
 # ---------------------------------------------------------------------------- point metrics
@@ -64,12 +51,12 @@ def test_known_translation_offset(pts):
 
 def test_rotation_about_origin_add_and_mssd(pts):
     """Rotating by 180° about the object z axis: MSSD = max 2·r_xy, ADD = mean 2·r_xy."""
-    T = T_GT @ make_T(_rot([0, 0, 1], 180.0), np.zeros(3))
+    T = T_GT @ make_T(rotvec([0, 0, 1], 180.0), np.zeros(3))
     r = 2 * np.linalg.norm(pts[:, :2], axis=1)
     assert M.add(T, T_GT, pts) == pytest.approx(r.mean(), rel=1e-9)
     assert M.mssd(T, T_GT, pts) == pytest.approx(r.max(), rel=1e-9)
     # ...and zero once that rotation is declared a symmetry.
-    syms = np.stack([np.eye(4), make_T(_rot([0, 0, 1], 180.0), np.zeros(3))])
+    syms = np.stack([np.eye(4), make_T(rotvec([0, 0, 1], 180.0), np.zeros(3))])
     assert M.mssd(T, T_GT, pts, syms) == pytest.approx(0.0, abs=1e-9)
     assert M.mspd(T, T_GT, K, pts, syms) == pytest.approx(0.0, abs=1e-7)
 
@@ -113,9 +100,9 @@ def test_symmetric_lmo_object_rotated_by_its_symmetry(lmo_dataset, obj_id):
 
 @pytest.fixture(scope="module")
 def box_scene():
-    mesh = _box([80.0, 60.0, 40.0])
+    mesh = box_mesh([80.0, 60.0, 40.0])
     r = Renderer(mesh)
-    Tg = make_T(_rot([1, 1, 0], 30.0), [5.0, -5.0, 500.0])
+    Tg = make_T(rotvec([1, 1, 0], 30.0), [5.0, -5.0, 500.0])
     depth_test = r.render(Tg, K, H, W).depth
     return mesh, r, Tg, depth_test
 

@@ -7,9 +7,10 @@ import math
 import numpy as np
 import pytest
 import trimesh
+from conftest import box_mesh, rotvec
 
-from pixie.eval import shape as M
 from pixie.camera import make_K, make_T
+from pixie.eval import shape as M
 from pixie.mesh import from_arrays
 from pixie.render import Renderer
 
@@ -17,32 +18,13 @@ K = make_K(500.0, 500.0, 160.0, 120.0)
 H, W = 240, 320
 
 
-def _box(extents, center=(0.0, 0.0, 0.0)):
-    b = trimesh.creation.box(extents=extents)
-    b.apply_translation(center)
-    return from_arrays(b.vertices, b.faces, name="box")
-
-
-def _rot(axis, deg):
-    from scipy.spatial.transform import Rotation
-
-    return Rotation.from_rotvec(np.radians(deg) * np.asarray(axis, float) / np.linalg.norm(axis)).as_matrix()
-
-
-@pytest.fixture(scope="module")
-def pts():
-    rng = np.random.default_rng(0)
-    return rng.uniform(-50, 50, (500, 3))
-
-
-T_GT = make_T(_rot([1, 2, 3], 40), [10.0, -20.0, 600.0])
 
 
 @pytest.fixture(scope="module")
 def box_scene():
-    mesh = _box([80.0, 60.0, 40.0])
+    mesh = box_mesh([80.0, 60.0, 40.0])
     r = Renderer(mesh)
-    Tg = make_T(_rot([1, 1, 0], 30.0), [5.0, -5.0, 500.0])
+    Tg = make_T(rotvec([1, 1, 0], 30.0), [5.0, -5.0, 500.0])
     return mesh, r, Tg, r.render(Tg, K, H, W).depth
 
 
@@ -61,9 +43,9 @@ def test_aps_part_removed_is_below_one():
         [trimesh.creation.box(extents=[80, 60, 40]), trimesh.creation.box(extents=[30, 30, 30], transform=make_T(np.eye(3), [55, 0, 0]))]
     )
     target = from_arrays(full.vertices, full.faces)  # box with a block attached
-    defective = _box([80.0, 60.0, 40.0])  # the block is missing
+    defective = box_mesh([80.0, 60.0, 40.0])  # the block is missing
     rt, rd = Renderer(target), Renderer(defective)
-    Tg = make_T(_rot([1, 0, 0], 20.0), [0.0, 0.0, 500.0])
+    Tg = make_T(rotvec([1, 0, 0], 20.0), [0.0, 0.0, 500.0])
     s = M.aps(rt, rd, Tg, Tg, K, H, W)
     assert 0.5 < s < 0.95
     res = M.aps_from_depth(rt.render(Tg, K, H, W).depth, rd.render(Tg, K, H, W).depth)
@@ -82,8 +64,8 @@ def test_aps_part_removed_is_below_one():
 
 
 def test_iou3d_cube_vs_half_cube():
-    cube = _box([100.0, 100.0, 100.0], [50.0, 50.0, 50.0])
-    half = _box([100.0, 100.0, 50.0], [50.0, 50.0, 25.0])
+    cube = box_mesh([100.0, 100.0, 100.0], [50.0, 50.0, 50.0])
+    half = box_mesh([100.0, 100.0, 50.0], [50.0, 50.0, 25.0])
     for vs in (10.0, 5.0, 3.0):
         assert M.iou3d(cube, half, vs) == pytest.approx(0.5, abs=vs / 100.0)
     assert M.iou3d(cube, cube, 5.0) == 1.0
