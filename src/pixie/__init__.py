@@ -3,17 +3,19 @@
 The public API is these few names (everything else is importable from its module, see ARCHITECTURE.md)::
 
     import pixie
+    from pixie.runner import make_matcher
 
     mesh = pixie.load_mesh("part.ply", units="mm")
     cfg = pixie.PixieConfig()
-    refs = pixie.build_reference_set(mesh, cfg.refs)          # or pixie.load_reference_set("part.npz", mesh)
+    refs = pixie.build_reference_set(mesh, cfg.refs, matcher=make_matcher(cfg))  # or pixie.load_reference_set(path, mesh)
     est = pixie.PoseEstimator(refs, cfg)
     result = est.estimate(pixie.load_image("photo.png"), K, bbox=(x, y, w, h))
     result.T_cam_from_obj, result.failed                       # every error is a pixie.PixieError
 
-The pipeline follows the data flow, one module per stage::
+The pipeline follows the data flow, one module per stage (ARCHITECTURE.md)::
 
-    mesh -> render -> views/encode -> references -> matching -> pose -> refine -> estimator
+    geometry (mesh, camera, render, views, encode) -> references -> matching -> pose -> refine -> estimator
+    eval beside; runner, cli, demo on top
 
 Conventions (everywhere): OpenCV camera (x right, y down, z forward), millimetres,
 ``T_cam_from_obj`` 4x4 rigid transforms mapping object points to camera points, intrinsics ``K`` 3x3.

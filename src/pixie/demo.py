@@ -23,7 +23,7 @@ from pixie.encode import shade
 from pixie.estimator import PoseEstimator
 from pixie.eval.datasets import BopDataset
 from pixie.eval.errors import add
-from pixie.mesh import from_arrays, load_mesh, Mesh
+from pixie.mesh import Mesh, from_arrays, load_mesh
 from pixie.query import bbox_from_mask
 from pixie.render import Renderer
 from pixie.runner import cached_reference_set

@@ -32,6 +32,7 @@ from pixie.camera import check_image_K, optical_axis_in_object, rotation_angle_d
 from pixie.config import PixieConfig
 from pixie.errors import ConfigError
 from pixie.features import Features
+from pixie.geometry import check_image
 from pixie.matching import Matcher, matcher_from_config
 from pixie.pose import (
     PnPResult,
@@ -44,7 +45,6 @@ from pixie.pose import (
     projected_box,
     solve_pnp_ransac,
 )
-from pixie.geometry import check_image
 from pixie.query import QueryCrop, bbox_from_mask, check_bbox, square_crop
 from pixie.references import ReferenceSet, add_features
 from pixie.refine import aligned_correspondences, render_in_crop

@@ -8,7 +8,7 @@ import cv2
 import numpy as np
 
 from pixie.encode import shade
-from pixie.references import encoding_images, ReferenceSet
+from pixie.references import ReferenceSet, encoding_images
 from pixie.render import Renderer
 
 EST_COLOR = (255, 40, 40)

@@ -16,7 +16,7 @@ import cv2
 import numpy as np
 
 from pixie.eval.datasets import BopDataset
-from pixie.eval.objects import load_object_data, ObjectData
+from pixie.eval.objects import ObjectData, load_object_data
 from pixie.eval.scores import Scores, TargetResult
 from pixie.eval.writers import format_table
 from pixie.geometry import orthonormalize

@@ -26,7 +26,7 @@ from pixie.camera import backproject, invert_T, make_T, rot_z
 from pixie.encode import encode
 from pixie.mesh import Mesh
 from pixie.query import square_crop
-from pixie.render import composite, Renderer
+from pixie.render import Renderer, composite
 from pixie.synth import photo
 from pixie.synth.parts import random_part
 from pixie.views import camera_distance, crop_K, square_crop_K, start_K

@@ -42,8 +42,8 @@ import numpy as np
 
 from pixie.camera import look_at, make_K
 from pixie.eval.shape import aps, iou3d
-from pixie.mesh import from_arrays, Mesh
-from pixie.render import composite, Renderer
+from pixie.mesh import Mesh, from_arrays
+from pixie.render import Renderer, composite
 from pixie.synth.assemblies import (
     Assembly,
     bracket_part,
@@ -55,7 +55,7 @@ from pixie.synth.assemblies import (
     shaft_part,
 )
 from pixie.synth.defects import make_defects
-from pixie.synth.photo import degrade, Material, random_background, random_color, render_rgb
+from pixie.synth.photo import Material, degrade, random_background, random_color, render_rgb
 
 WIDTH, HEIGHT = 640, 480
 DEPTH_SCALE = 0.1  # mm per depth-PNG unit
