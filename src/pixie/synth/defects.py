@@ -18,6 +18,7 @@ from __future__ import annotations
 
 import numpy as np
 
+from pixie.geometry import rodrigues
 from pixie.synth.assemblies import (
     Assembly,
     bracket_part,
@@ -86,9 +87,7 @@ def shifted_part(asm: Assembly, rng: np.random.Generator, part: int | None = Non
 
 
 def _rot_about(T: np.ndarray, center: np.ndarray, axis: np.ndarray, angle: float) -> np.ndarray:
-    axis = axis / np.linalg.norm(axis)
-    Kx = np.array([[0, -axis[2], axis[1]], [axis[2], 0, -axis[0]], [-axis[1], axis[0], 0]])
-    R = np.eye(3) + np.sin(angle) * Kx + (1 - np.cos(angle)) * Kx @ Kx
+    R = rodrigues(axis, angle)
     M = np.eye(4)
     M[:3, :3] = R
     M[:3, 3] = center - R @ center

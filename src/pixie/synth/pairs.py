@@ -24,6 +24,7 @@ import numpy as np
 
 from pixie.camera import backproject, invert_T, make_T, rot_z
 from pixie.encode import encode
+from pixie.geometry import nearest_pixel, rodrigues, rotation_between
 from pixie.mesh import Mesh
 from pixie.query import square_crop
 from pixie.render import Renderer, composite
@@ -85,9 +86,7 @@ class Pair:
         default 1.5 % of the part's diameter).
         """
         kp_q = np.asarray(kp_q, np.float64).reshape(-1, 2)
-        S = self.query_owner.shape[0]
-        ix = np.clip(np.rint(kp_q[:, 0]).astype(int), 0, S - 1)
-        iy = np.clip(np.rint(kp_q[:, 1]).astype(int), 0, S - 1)
+        ix, iy = nearest_pixel(kp_q, self.query_owner.shape)
         on = self.query_owner[iy, ix] == 0
         X = self.query_xyz[iy, ix].astype(np.float64)
         Xc = X @ self.ref_T[:3, :3].T + self.ref_T[:3, 3]
@@ -113,8 +112,7 @@ class Pair:
         """
         kp_r = np.asarray(kp_r, np.float64).reshape(-1, 2)
         H, W = self.ref_depth.shape
-        ix = np.clip(np.rint(kp_r[:, 0]).astype(int), 0, W - 1)
-        iy = np.clip(np.rint(kp_r[:, 1]).astype(int), 0, H - 1)
+        ix, iy = nearest_pixel(kp_r, self.ref_depth.shape)
         z = self.ref_depth[iy, ix].astype(np.float64)
         Xc = backproject(self.ref_K, np.stack([ix, iy], 1).astype(np.float64), z)
         Ti = invert_T(self.ref_T)
@@ -146,20 +144,10 @@ def _random_rotation(rng: np.random.Generator) -> np.ndarray:
     ])
 
 
-def _axis_angle(axis: np.ndarray, angle: float) -> np.ndarray:
-    a = axis / np.linalg.norm(axis)
-    k = np.array([[0, -a[2], a[1]], [a[2], 0, -a[0]], [-a[1], a[0], 0]])
-    return np.eye(3) + np.sin(angle) * k + (1 - np.cos(angle)) * k @ k
-
-
 def _centre_on_axis(R: np.ndarray, t: np.ndarray, center: np.ndarray) -> np.ndarray:
     """Rotation turning the camera so the object centre lies on the optical axis (like a query crop)."""
     c = R @ center + t
-    a = c / np.linalg.norm(c)
-    z = np.array([0.0, 0.0, 1.0])
-    v, cos = np.cross(a, z), float(a @ z)
-    vx = np.array([[0, -v[2], v[1]], [v[2], 0, -v[0]], [-v[1], v[0], 0]])
-    return (np.eye(3) + vx + vx @ vx / (1.0 + cos)) @ R
+    return rotation_between(c / np.linalg.norm(c), np.array([0.0, 0.0, 1.0])) @ R
 
 
 def reference_pose(mesh: Mesh, R_query: np.ndarray, t_query: np.ndarray, rng: np.random.Generator,
@@ -172,7 +160,7 @@ def reference_pose(mesh: Mesh, R_query: np.ndarray, t_query: np.ndarray, rng: np
     ang = np.radians(cfg.max_view_deg) * np.sqrt(rng.random())  # uniform over the spherical cap (approx.)
     axis = rng.standard_normal(3)
     axis[2] = 0.0  # tilt about an axis in the image plane: the viewing direction changes by `ang`
-    R = _axis_angle(axis, ang) @ R
+    R = rodrigues(axis, ang) @ R
     R = rot_z(np.radians(cfg.max_roll_deg) * rng.uniform(-1, 1)) @ R
     T = make_T(R, np.array([0.0, 0.0, dist]) - R @ mesh.center)
     K, _ = square_crop_K(K0, T, mesh.vertices, S, cfg.crop_pad)
