@@ -19,7 +19,7 @@ from pathlib import Path
 REPO = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(REPO / "src"))
 
-from pixie.datasets import BopDataset  # noqa: E402
+from pixie.eval.datasets import BopDataset  # noqa: E402
 
 DEFAULT_DATASET = REPO.parent / "shared/data/lmo_dev/lmo"
 

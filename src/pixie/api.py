@@ -9,8 +9,15 @@ from typing import Any, Sequence
 
 import numpy as np
 
+from pixie.camera import make_K, parse_K
 from pixie.config import DEFAULT_PRESET, PixieConfig
 from pixie.errors import ImageError
+from pixie.estimator import PoseEstimator
+from pixie.mesh import Mesh, load_mesh
+from pixie.query import load_image
+from pixie.references import ReferenceSet, load_reference_set
+from pixie.runner import cached_reference_set
+from pixie.weights import cache_dir
 
 __all__ = ["estimate_pose", "as_K"]
 
@@ -21,7 +28,6 @@ _MAX_ESTIMATORS = 2
 
 def as_K(K: Any) -> np.ndarray:
     """Intrinsics from a 3x3 matrix, ``(fx, fy, cx, cy)``, or the string ``"fx,fy,cx,cy"``."""
-    from pixie.camera import make_K, parse_K
 
     if isinstance(K, str):
         return parse_K(K)
@@ -32,16 +38,12 @@ def as_K(K: Any) -> np.ndarray:
 
 
 def _refs_cache() -> Path:
-    from pixie.weights import cache_dir
 
     return cache_dir().parent / "refs"
 
 
 def _reference_set(obj: Any, cfg: PixieConfig, units: str, cache: Path | None):
     """A ReferenceSet from a ReferenceSet, a Mesh, a mesh file (built once, cached) or a reference-set file."""
-    from pixie.mesh import Mesh, load_mesh
-    from pixie.references import ReferenceSet, load_reference_set
-    from pixie.runner import cached_reference_set
 
     if isinstance(obj, ReferenceSet):
         return obj, ("refs", id(obj))
@@ -97,8 +99,6 @@ def estimate_pose(mesh_or_refs: Any, image: Any, K: Any, bbox: Sequence[float] |
     pixie.PixieError
         Missing inputs, no box or mask, unreadable files, bad intrinsics.
     """
-    from pixie.estimator import PoseEstimator
-    from pixie.query import load_image
 
     if bbox is None and mask is None:
         raise ImageError("no object box: pass bbox=(x, y, w, h) in pixels (w, h counting pixels) or mask=... "

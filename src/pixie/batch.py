@@ -36,9 +36,18 @@ from typing import Any, Callable
 
 import numpy as np
 
+from pixie.camera import make_K
+from pixie.cluster import WorkerSpec, ray_map, serial_map
 from pixie.config import PixieConfig
 from pixie.errors import ConfigError, ImageError, PixieError
+from pixie.estimator import PoseEstimator
+from pixie.eval.datasets import PoseEstimate, write_results_csv
 from pixie.outputs import write_atomic
+from pixie.query import bbox_from_mask, check_bbox, load_image
+from pixie.references import load_reference_set
+from pixie.render import Renderer
+from pixie.viz import encode_png, overlay_result
+from pixie.weights import sha256_file
 
 __all__ = ["BatchItem", "read_manifest", "folder_items", "run_batch", "IMAGE_SUFFIXES"]
 
@@ -74,7 +83,6 @@ def _numbers(text: Any, what: str, where: str) -> list[float]:
 
 
 def _K(value: Any, where: str) -> np.ndarray:
-    from pixie.camera import make_K
 
     vals = _numbers(value, "K", where)
     if len(vals) == 4:
@@ -180,7 +188,6 @@ def folder_items(folder: str | Path, K: str | np.ndarray | None, bbox: str | Non
 
 def load_mask(path: str | Path) -> np.ndarray:
     """A mask image as booleans (pixel values > 127 in the first channel are the object)."""
-    from pixie.query import load_image
 
     return load_image(path)[..., 0] > 127
 
@@ -200,9 +207,6 @@ def item_key(item: BatchItem, image_sha: str, mask_sha: str | None, config_diges
 # ----------------------------------------------------------------------------------------- workers
 def _setup(args: dict) -> dict:
     """Worker state: the reference set (from file), one estimator and one renderer."""
-    from pixie.estimator import PoseEstimator
-    from pixie.references import load_reference_set
-    from pixie.render import Renderer
 
     cfg = PixieConfig.from_dict(args["config"])
     cfg.preset = args.get("preset")
@@ -213,8 +217,6 @@ def _setup(args: dict) -> dict:
 
 def _process(state: dict, job: dict) -> dict:
     """Estimate one photo; a bad input gives a failed record, never an exception."""
-    from pixie.query import check_bbox, load_image
-    from pixie.viz import encode_png, overlay_result
 
     t0 = time.perf_counter()
     rec = {k: job[k] for k in ("key", "row", "name", "image", "image_sha256", "K", "bbox", "mask",
@@ -226,7 +228,6 @@ def _process(state: dict, job: dict) -> dict:
         res = state["est"].estimate(image, K, bbox=job["bbox"], mask=mask)
         rec["result"] = res.to_dict()
         if state["overlays"]:
-            from pixie.query import bbox_from_mask
 
             bbox = job["bbox"] if job["bbox"] is not None else bbox_from_mask(mask)
             box = check_bbox(bbox, image.shape[:2])
@@ -273,9 +274,6 @@ def run_batch(items: list[BatchItem], out_dir: str | Path, config: PixieConfig, 
 
     ``max_items`` stops after that many newly run items (the outputs then cover what is done so far).
     """
-    from pixie.datasets import PoseEstimate, write_results_csv
-    from pixie.references import load_reference_set
-    from pixie.weights import sha256_file
 
     t_start = time.perf_counter()
     out = Path(out_dir)
@@ -324,7 +322,6 @@ def run_batch(items: list[BatchItem], out_dir: str | Path, config: PixieConfig, 
             if bar is not None:
                 bar.update(1)
 
-        from pixie.cluster import WorkerSpec, ray_map, serial_map
 
         spec = WorkerSpec(_setup, _process, {"config": config.to_dict(), "preset": config.preset,
                                              "refs": str(refs_path.resolve()), "overlays": overlays}, threads)

@@ -1,7 +1,9 @@
-"""Command line: ``pixie refs build|show``, ``pixie estimate``, ``pixie run``, ``pixie eval``.
+"""Command line: ``pixie refs build|show``, ``pixie estimate`` (one photo or ``--batch``), ``pixie run``,
+``pixie eval``, ``pixie weights``, ``pixie demo``, ``pixie --version``.
 
-Every command takes ``--config FILE.yaml`` and ``--set section.key=value`` (repeatable) overrides
-of :class:`pixie.config.PixieConfig`. Errors pixie raises on purpose print one line and exit 2.
+Every command with a configuration starts from ``--preset`` (default ``default``), then ``--config FILE.yaml``,
+then ``--set section.key=value`` (repeatable) overrides of :class:`pixie.config.PixieConfig`, and takes
+``--device``. Errors pixie raises on purpose print one line and exit 2; Ctrl-C prints one line and exits 130.
 """
 
 from __future__ import annotations
@@ -11,13 +13,29 @@ import json
 import logging
 import sys
 import time
+import warnings
 from pathlib import Path
 
 import numpy as np
 
-from pixie import __version__
+from pixie._version import __version__
+from pixie.batch import folder_items, read_manifest, run_batch
+from pixie.camera import parse_K
+from pixie.cluster import set_threads
 from pixie.config import DEFAULT_PRESET, PixieConfig, preset_about, preset_names
+from pixie.demo import main as demo_main
 from pixie.errors import PixieError
+from pixie.estimator import PoseEstimator
+from pixie.eval import add_eval_arguments, main_eval, run_eval
+from pixie.matching import available_matchers, backend_weights
+from pixie.mesh import load_mesh, units_note
+from pixie.outputs import write_atomic
+from pixie.query import load_image
+from pixie.references import build_reference_set, check_output_path, load_reference_set, save_reference_set
+from pixie.render import Renderer
+from pixie.runner import cached_reference_set, make_matcher, reference_cache_path, run_dataset
+from pixie.viz import contact_sheet, overlay_result, save_png
+from pixie.weights import cache_dir, sha256_file, weights_status
 
 
 def _config(args: argparse.Namespace) -> PixieConfig:
@@ -52,10 +70,6 @@ def _add_parallel_args(p: argparse.ArgumentParser) -> None:
 
 def _load_mesh(path: str, units: str):
     """load_mesh, announcing the units in one line and any size warning as one clean line."""
-    import warnings
-
-    from pixie.mesh import load_mesh, units_note
-
     with warnings.catch_warnings(record=True) as caught:
         warnings.simplefilter("always")
         mesh = load_mesh(path, units=units)
@@ -87,9 +101,6 @@ def _tqdm_progress(total_label: str):
 
 # ------------------------------------------------------------------------------------------- refs
 def cmd_refs_build(args: argparse.Namespace) -> int:
-    from pixie.references import build_reference_set, check_output_path, save_reference_set
-    from pixie.runner import make_matcher
-
     cfg = _config(args)
     if args.views is not None:
         cfg.refs.n_fibonacci = args.views - (6 if cfg.refs.canonical else 0)
@@ -116,14 +127,11 @@ def cmd_refs_build(args: argparse.Namespace) -> int:
 
 
 def cmd_refs_show(args: argparse.Namespace) -> int:
-    from pixie.references import load_reference_set
-    from pixie.viz import contact_sheet, save_png
-
     refs = load_reference_set(args.refs)
     views = None if args.views is None else [int(v) for v in args.views.split(",")]
     sheet = contact_sheet(refs, args.encodings.split(",") if args.encodings else None, views, tile=args.tile)
     save_png(args.output, sheet)
-    feats = ", ".join(f"{k} ({len(v['feat_image_sizes'])} images)" for k, v in refs.features.items()) or "none"
+    feats = ", ".join(f"{k} ({len(refs.features_for(*k.split('/', 1))[0])} images)" for k in refs.features) or "none"
     print(f"{args.refs}: {refs.mesh.name}, {refs.n_views} views x {refs.n_rolls} rolls at {refs.size} px; "
           f"features: {feats}; sheet -> {args.output}")
     return 0
@@ -139,14 +147,10 @@ def _use_stored_matcher(cfg: PixieConfig, refs, overrides: list[str] | None) -> 
 
 def _refs_for_estimate(args: argparse.Namespace, cfg: PixieConfig, cache: Path):
     """(reference set, its path): from --refs, or built once from --mesh into ``cache``."""
-    from pixie.references import load_reference_set
-
     if bool(args.refs) == bool(args.mesh):
         raise PixieError("give the object as --refs SET.npz (from `pixie refs build`) or --mesh MODEL (built once and cached)")
     if args.refs:
         return load_reference_set(args.refs), Path(args.refs)
-    from pixie.runner import cached_reference_set, reference_cache_path
-
     mesh = _load_mesh(args.mesh, args.units)
     path = reference_cache_path(mesh, cfg, cache)
     if not path.is_file():
@@ -162,17 +166,8 @@ def cmd_estimate(args: argparse.Namespace) -> int:
         raise PixieError("give --image PHOTO (one photo) or --batch FOLDER|MANIFEST (many)")
     if args.ray:
         raise PixieError("--ray distributes --batch runs; one --image runs here")
-    from pixie.camera import parse_K
-    from pixie.estimator import PoseEstimator
-    from pixie.query import load_image
-    from pixie.render import Renderer
-    from pixie.viz import overlay_result, save_png
-    from pixie.weights import cache_dir
-
     cfg = _config(args)
     if args.threads:
-        from pixie.cluster import set_threads
-
         set_threads(args.threads)
     if args.K is None:
         raise PixieError("--K fx,fy,cx,cy is needed (the camera intrinsics in pixels)")
@@ -199,9 +194,6 @@ def cmd_estimate(args: argparse.Namespace) -> int:
         print("T_cam_from_obj (mm) =\n" + str(T))
     print("timings (s): " + ", ".join(f"{k} {v:.2f}" for k, v in res.timings.items()))
     if args.output:
-        from pixie.outputs import write_atomic
-        from pixie.weights import sha256_file
-
         record = res.to_dict()
         record["image"] = {"path": str(args.image), "sha256": sha256_file(args.image)}
         record["mask"] = None if not args.mask else {"path": str(args.mask), "sha256": sha256_file(args.mask)}
@@ -215,8 +207,6 @@ def cmd_estimate(args: argparse.Namespace) -> int:
 
 
 def _estimate_batch(args: argparse.Namespace) -> int:
-    from pixie.batch import folder_items, read_manifest, run_batch
-
     if args.image or args.mask or args.overlay:
         raise PixieError("--batch takes a folder or a manifest; --image/--mask/--overlay are for one photo")
     if not args.output:
@@ -244,9 +234,6 @@ def _estimate_batch(args: argparse.Namespace) -> int:
 # --------------------------------------------------------------------------------------- weights
 def cmd_weights(args: argparse.Namespace) -> int:
     """Every matching backend, the weight files it needs, where each was found (or that it is missing)."""
-    from pixie.matching import available_matchers, backend_weights
-    from pixie.weights import weights_status
-
     status = {s.name: s for s in weights_status(explicit=args.dir)}
     backends = backend_weights()
     usable = set(available_matchers())
@@ -279,9 +266,6 @@ def cmd_weights(args: argparse.Namespace) -> int:
 
 # ------------------------------------------------------------------------------------------- run
 def cmd_run(args: argparse.Namespace) -> int:
-    from pixie.eval import run_eval
-    from pixie.runner import run_dataset
-
     cfg = _config(args)
     objects = None if not args.objects else [int(o) for o in args.objects.split(",")]
     t0 = time.perf_counter()
@@ -295,8 +279,6 @@ def cmd_run(args: argparse.Namespace) -> int:
 
 
 def build_parser() -> argparse.ArgumentParser:
-    from pixie.eval import add_eval_arguments, main_eval
-
     p = argparse.ArgumentParser(prog="pixie", description="6D object pose from one RGB photo and an untextured CAD model")
     p.add_argument("-v", "--verbose", action="store_true")
     p.add_argument("--version", action="version", version=f"pixie {__version__}")
@@ -373,8 +355,6 @@ def build_parser() -> argparse.ArgumentParser:
 def main(argv: list[str] | None = None) -> int:
     argv = sys.argv[1:] if argv is None else list(argv)
     if argv[:1] == ["demo"]:  # the demo parses its own options
-        from pixie.demo import main as demo_main
-
         try:
             return int(demo_main(argv[1:]) or 0)
         except PixieError as exc:

@@ -15,6 +15,8 @@ from __future__ import annotations
 from dataclasses import dataclass, field
 from typing import Any, Callable, Sequence
 
+import cv2
+
 from pixie.errors import PixieError
 
 __all__ = ["WorkerSpec", "set_threads", "init_ray", "ray_map", "serial_map"]
@@ -22,7 +24,6 @@ __all__ = ["WorkerSpec", "set_threads", "init_ray", "ray_map", "serial_map"]
 
 def set_threads(n: int) -> int:
     """Use ``n`` threads in torch and OpenCV in this process; returns the previous torch thread count."""
-    import cv2
     import torch
 
     if n < 1:

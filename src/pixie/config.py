@@ -13,6 +13,8 @@ the paper's settings plus pixie's extras and are not a preset.
 from __future__ import annotations
 
 import dataclasses
+import hashlib
+import json
 from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any
@@ -97,8 +99,6 @@ class RefineConfig:
     # on LM-O (48 targets) 2 iterations x 6 hypotheses doubled ADD(-S)<0.1d (bench/RESULTS.md).
     render_iters: int = 2
     render_hypotheses: int = 6
-    render_seeds: int = 0  # + the poses of this many best-ranked reference (view, roll) pairs themselves
-    render_window: float | None = None  # NN window for aligned matching, fraction of refs.size (None: match.window)
 
 
 PRESETS_DIR = Path(__file__).resolve().parent / "configs"
@@ -149,8 +149,6 @@ class PixieConfig:
 
     def digest(self) -> str:
         """sha256 (hex, 16 characters) of :meth:`to_dict`: equal digests mean equal settings."""
-        import hashlib
-        import json
 
         return hashlib.sha256(json.dumps(self.to_dict(), sort_keys=True).encode()).hexdigest()[:16]
 

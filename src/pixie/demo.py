@@ -16,27 +16,34 @@ import sys
 import time
 from pathlib import Path
 
+import cv2
 import numpy as np
 
 from pixie.camera import look_at, make_K, rotation_angle_deg
 from pixie.config import PixieConfig
+from pixie.encode import shade
+from pixie.estimator import PoseEstimator
+from pixie.eval.datasets import BopDataset
+from pixie.eval.errors import add
 from pixie.mesh import Mesh, from_arrays, load_mesh
+from pixie.query import bbox_from_mask
+from pixie.render import Renderer
+from pixie.runner import cached_reference_set
+from pixie.viz import contact_sheet, overlay_pose, save_png
+from pixie.weights import repo_root, shared_root
 
 REPO = Path(__file__).resolve().parents[2]
 
 
 def lmo_dir() -> Path | None:
     """LM-O dev data in the shared folder (``$PIXIE_SHARED`` or ``<repo>/../shared``), if present."""
-    from pixie.weights import shared_root
-
     root = shared_root()
     d = None if root is None else root / "data" / "lmo_dev" / "lmo"
     return d if d is not None and d.is_dir() else None
 
 
 def default_out() -> Path:
-    from pixie.weights import repo_root
-
+    """``out/demo`` in a source checkout, else ``./pixie-demo``."""
     root = repo_root()
     return root / "out" / "demo" if root is not None else Path.cwd() / "pixie-demo"
 
@@ -58,11 +65,6 @@ def generated_part() -> Mesh:
 
 def generated_photo(mesh: Mesh, seed: int = 0) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
     """A 640x480 'photo' of ``mesh``: shaded, random face colours, noisy cluttered background."""
-    import cv2
-
-    from pixie.encode import shade
-    from pixie.render import Renderer
-
     rng = np.random.default_rng(seed)
     K = make_K(600.0, 600.0, 319.5, 239.5)
     T = look_at(mesh.center + np.array([260.0, -380.0, 300.0]), mesh.center, np.array([0.0, 0.0, 1.0]))
@@ -79,13 +81,6 @@ def generated_photo(mesh: Mesh, seed: int = 0) -> tuple[np.ndarray, np.ndarray, 
 
 
 def main(argv: list[str] | None = None) -> int:
-    from pixie.estimator import PoseEstimator
-    from pixie.metrics import add
-    from pixie.query import bbox_from_mask
-    from pixie.render import Renderer
-    from pixie.runner import cached_reference_set
-    from pixie.viz import contact_sheet, overlay_pose, save_png
-
     ap = argparse.ArgumentParser(description=__doc__)
     ap.add_argument("--out", default=None, help="output folder (default out/demo in a checkout, else ./pixie-demo)")
     ap.add_argument("--synthetic", action="store_true", help="use a generated part even if LM-O is present")
@@ -101,8 +96,6 @@ def main(argv: list[str] | None = None) -> int:
     lmo = lmo_dir()
 
     if lmo is not None and not args.synthetic:
-        from pixie.datasets import BopDataset
-
         ds = BopDataset(lmo)
         mesh = load_mesh(ds.model_path(args.obj_id))
         image, K = ds.load_rgb(2, args.im_id), ds.camera(2, args.im_id).K
@@ -146,8 +139,6 @@ def main(argv: list[str] | None = None) -> int:
 def _write_inputs(out: Path, mesh: Mesh, image: np.ndarray, K: np.ndarray, bbox: np.ndarray) -> None:
     """The generated part's inputs as files, for trying ``pixie estimate`` on them."""
     import trimesh
-
-    from pixie.viz import save_png
 
     out.mkdir(parents=True, exist_ok=True)
     trimesh.Trimesh(mesh.vertices, mesh.faces, process=False).export(out / "part.stl")

@@ -7,6 +7,9 @@ from pathlib import Path
 import cv2
 import numpy as np
 
+from pixie.camera import project
+from pixie.encode import shade
+from pixie.outputs import write_atomic
 from pixie.references import ReferenceSet, encoding_images
 from pixie.render import Renderer
 
@@ -51,8 +54,6 @@ def contact_sheet(refs: ReferenceSet, encodings: list[str] | None = None, views:
 def overlay_pose(image: np.ndarray, renderer: Renderer, T_est: np.ndarray | None, K: np.ndarray,
                  T_gt: np.ndarray | None = None, shade_alpha: float = 0.35) -> np.ndarray:
     """The model drawn at the estimate (shaded, red contour) and optionally at GT (green contour)."""
-    from pixie.encode import shade
-
     h, w = image.shape[:2]
     out = _rgb(image).copy()
     if T_est is not None:
@@ -88,8 +89,6 @@ def overlay_result(image: np.ndarray, renderer: Renderer, T: np.ndarray | None, 
     axes at its origin (x red, y green, z blue, 0.3 diameters long), the given box (yellow) and ``label``
     (e.g. the confidence). Line widths scale with the object's size in the image.
     """
-    from pixie.camera import project
-    from pixie.encode import shade
 
     h, w = image.shape[:2]
     out = _rgb(image).copy()
@@ -154,6 +153,5 @@ def draw_matches(img_q: np.ndarray, img_r: np.ndarray, kq: np.ndarray, kr: np.nd
 
 def save_png(path: str | Path, rgb: np.ndarray) -> Path:
     """Write an RGB (or grey) image as PNG at exactly ``path`` (whatever its suffix), atomically, creating the folder."""
-    from pixie.outputs import write_atomic
 
     return write_atomic(path, encode_png(rgb))
