@@ -255,7 +255,8 @@ def build_synthetic_bop(root: Path) -> dict:
         ]
         cam[str(im_id)] = {"cam_K": SYN_K.ravel().tolist(), "depth_scale": 0.1}
         gt_info[str(im_id)] = [
-            {"visib_fract": float((owner == i).sum() / max(r.mask.sum(), 1)), "px_count_all": int(r.mask.sum())}
+            {"visib_fract": float((owner == i).sum() / max(r.mask.sum(), 1)), "px_count_all": int(r.mask.sum()),
+             "bbox_visib": _bop_box(owner == i), "bbox_obj": _bop_box(r.mask)}
             for i, r in enumerate(renders)
         ]
         counts: dict[int, int] = {}
@@ -270,6 +271,14 @@ def build_synthetic_bop(root: Path) -> dict:
     return {"meshes": meshes, "scenes": scenes}
 
 
+
+
+def _bop_box(mask: np.ndarray) -> list[int]:
+    """A mask's box as BOP stores it: [x, y, last - first, last - first]; [-1, -1, -1, -1] when empty."""
+    ys, xs = np.nonzero(mask)
+    if len(xs) == 0:
+        return [-1, -1, -1, -1]
+    return [int(xs.min()), int(ys.min()), int(xs.max() - xs.min()), int(ys.max() - ys.min())]
 
 
 @pytest.fixture(scope="session")

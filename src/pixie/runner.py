@@ -21,7 +21,7 @@ import numpy as np
 
 from pixie.cluster import WorkerSpec, ray_map, set_threads
 from pixie.config import PixieConfig
-from pixie.errors import PixieError, ReferenceSetError
+from pixie.errors import DatasetError, PixieError, ReferenceSetError
 from pixie.estimator import PoseEstimator
 from pixie.eval.datasets import BopDataset, PoseEstimate, Target, write_results_csv
 from pixie.matching import Matcher, matcher_from_config
@@ -256,6 +256,9 @@ def _run_target(ds: BopDataset, est, t: Target) -> dict:
     for inst in insts[: t.inst_count]:
         t0 = time.perf_counter()
         try:
+            if inst.box_visib is None:
+                raise DatasetError(f"scene {t.scene_id} image {t.im_id} object {t.obj_id}: the dataset gives no "
+                                   "bbox_visib (scene_gt_info.json), and pixie needs the object's box")
             r = est.estimate(img, K, bbox=inst.box_visib)
             T, score, failed, timings = r.T_cam_from_obj, r.score, r.failed, r.timings
         except PixieError as exc:
