@@ -125,3 +125,35 @@ def test_refs_build_keeps_the_output_name(tmp_path, capsys):
     before = os.stat("/dev/null")
     assert main(["refs", "build", str(stl), "-o", "/dev/null", *small]) == 0
     assert stat.S_ISCHR(os.stat("/dev/null").st_mode) and os.stat("/dev/null").st_ino == before.st_ino
+
+
+def test_estimate_from_a_mesh_builds_references_once(tmp_path, monkeypatch, capsys):
+    """`pixie estimate --mesh` builds the reference set into the user cache once; the JSON names its inputs."""
+    import trimesh
+
+    from pixie.demo import generated_part, generated_photo
+    from pixie.query import bbox_from_mask
+    from pixie.viz import save_png
+
+    monkeypatch.setenv("XDG_CACHE_HOME", str(tmp_path / "cache"))
+    m = generated_part()
+    trimesh.Trimesh(m.vertices, m.faces, process=False).export(tmp_path / "part.stl")
+    img, K, T = generated_photo(m)
+    save_png(tmp_path / "photo.png", img)
+    x, y, w, h = bbox_from_mask(Renderer(m).render(T, K, *img.shape[:2]).mask)
+    args = ["estimate", "--mesh", str(tmp_path / "part.stl"), "--image", str(tmp_path / "photo.png"),
+            "--K", f"{K[0, 0]},{K[1, 1]},{K[0, 2]},{K[1, 2]}", "--bbox", f"{x:.0f},{y:.0f},{w:.0f},{h:.0f}",
+            "-o", str(tmp_path / "r.json"), "--overlay", str(tmp_path / "o.png"), *TINY]
+    main(args)
+    assert "building references" in capsys.readouterr().out
+    sets = list((tmp_path / "cache" / "pixie" / "refs").glob("*.npz"))
+    assert len(sets) == 1
+    main(args)
+    assert "building references" not in capsys.readouterr().out
+    res = json.loads((tmp_path / "r.json").read_text())
+    assert res["units"] == "mm" and res["box"]["source"] == "bbox" and res["box"]["xywh"] == [x, y, w, h]
+    import hashlib
+
+    assert res["image"]["sha256"] == hashlib.sha256((tmp_path / "photo.png").read_bytes()).hexdigest()
+    assert res["mesh_sha256"] == hashlib.sha256((tmp_path / "part.stl").read_bytes()).hexdigest()
+    assert cv2.imread(str(tmp_path / "o.png")).shape == img.shape
