@@ -9,6 +9,8 @@ import json
 import sys
 from pathlib import Path
 
+import numpy as np
+
 import pixie
 
 folder = Path(sys.argv[1] if len(sys.argv) > 1 else "out/demo")
@@ -18,5 +20,6 @@ image = pixie.load_image(folder / "photo.png")                             # RGB
 
 result = pixie.estimate_pose(folder / "part.stl", image, K, bbox=bbox)    # references built once, then cached
 print("failed" if result.failed else "ok", f"confidence {result.confidence:.2f} (not calibrated)")
-print("T_cam_from_obj (mm, OpenCV camera):\n", result.T_cam_from_obj.round(3))
+np.set_printoptions(precision=3, suppress=True)
+print("T_cam_from_obj (mm, OpenCV camera):\n", result.T_cam_from_obj)
 (folder / "example_result.json").write_text(json.dumps(result.to_dict(), indent=1))
