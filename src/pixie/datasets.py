@@ -560,16 +560,19 @@ def read_results_csv(path: str | Path) -> list[PoseEstimate]:
     if not path.is_file():
         raise DatasetError(f"results file not found: {path}")
     out = []
-    with open(path, encoding="utf-8") as f:
-        for lineno, line in enumerate(f, 1):
-            s = line.strip()
-            if not s:
-                continue
-            if lineno == 1 and s.replace(" ", "").startswith("scene_id"):
-                if s.replace(" ", "") != RESULTS_HEADER:
-                    raise DatasetError(f"{path} line 1: header {s!r}, expected {RESULTS_HEADER!r}")
-                continue
-            out.append(_parse_result_line(s, lineno, path))
+    try:
+        text = path.read_text(encoding="utf-8")
+    except UnicodeDecodeError as exc:
+        raise DatasetError(f"{path} is not UTF-8 text (byte {exc.start}): is it a BOP results CSV?") from exc
+    for lineno, line in enumerate(text.splitlines(), 1):
+        s = line.strip()
+        if not s:
+            continue
+        if lineno == 1 and s.replace(" ", "").startswith("scene_id"):
+            if s.replace(" ", "") != RESULTS_HEADER:
+                raise DatasetError(f"{path} line 1: header {s!r}, expected {RESULTS_HEADER!r}")
+            continue
+        out.append(_parse_result_line(s, lineno, path))
     return out
 
 

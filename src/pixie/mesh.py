@@ -144,7 +144,7 @@ def from_arrays(vertices: np.ndarray, faces: np.ndarray, name: str = "mesh", uni
     return _finish(v, f, name, digest, units)
 
 
-def load_mesh(path: str | Path, units: str = "mm") -> Mesh:
+def load_mesh(path: str | Path, units: str = "mm", implausible: str = "warn") -> Mesh:
     """Load a triangle mesh and return it in millimetres.
 
     Parameters
@@ -154,6 +154,9 @@ def load_mesh(path: str | Path, units: str = "mm") -> Mesh:
     units : {'mm', 'cm', 'm', 'auto'}
         Units the file is written in. ``'auto'`` takes metres when the bounding-box diagonal
         is below 2 (a part under 2 mm is unlikely), else millimetres.
+    implausible : {'warn', 'error'}
+        What a size outside 2 mm .. 5 m in the declared units does: a ``UserWarning`` or a
+        :class:`MeshError` (the CLI's choice when the user did not name the units).
 
     Raises
     ------
@@ -179,6 +182,11 @@ def load_mesh(path: str | Path, units: str = "mm") -> Mesh:
         raise MeshError(f"{path} holds no triangle mesh (got {type(loaded).__name__})")
     if len(loaded.faces) == 0:
         raise MeshError(_no_triangles_message(path, len(loaded.vertices)))
+    faces = np.asarray(loaded.faces)
+    if faces.min() < 0 or faces.max() >= len(loaded.vertices):  # checked before trimesh indexes with them
+        bad = int(((faces < 0) | (faces >= len(loaded.vertices))).any(axis=1).sum())
+        raise MeshError(f"mesh {path}: {bad} face(s) use vertex indices outside its {len(loaded.vertices)} vertices "
+                        f"(indices {int(faces.min())}..{int(faces.max())}); the file is corrupt")
     # STL (and some OBJ/GLB exports) repeat every vertex per face: weld equal positions so that
     # smooth normals and adjacency do not depend on the file format.
     if len(loaded.vertices) and np.all(np.isfinite(loaded.vertices)):  # NaNs are reported below
@@ -189,6 +197,7 @@ def load_mesh(path: str | Path, units: str = "mm") -> Mesh:
         path.stem,
         hashlib.sha256(data).hexdigest(),
         units,
+        implausible,
     )
 
 
@@ -223,7 +232,7 @@ def _count_points(path: Path) -> int:
     return int(sum(len(getattr(g, "vertices", ())) for g in parts))
 
 
-def _finish(v: np.ndarray, f: np.ndarray, name: str, digest: str, units: str) -> Mesh:
+def _finish(v: np.ndarray, f: np.ndarray, name: str, digest: str, units: str, implausible: str = "warn") -> Mesh:
     if units not in (*UNIT_SCALE, "auto"):
         raise MeshError(f"unknown units {units!r}; use one of mm, cm, m, auto")
     if v.ndim != 2 or v.shape[1] != 3 or len(v) == 0:
@@ -248,12 +257,11 @@ def _finish(v: np.ndarray, f: np.ndarray, name: str, digest: str, units: str) ->
     diag_mm = diag * UNIT_SCALE[units]
     if not lo <= diag_mm <= hi:
         hint = "metres? try --units m" if diag_mm < lo else "already in mm? try --units mm"
-        warnings.warn(
-            f"mesh {name!r} is {diag_mm:.4g} mm across in the declared units ({units}); "
-            f"this is implausible for a part ({hint})",
-            UserWarning,
-            stacklevel=3,
-        )
+        msg = (f"mesh {name!r} is {diag_mm:.4g} mm across in the declared units ({units}); "
+               f"this is implausible for a part ({hint})")
+        if implausible == "error":
+            raise MeshError(msg + "; name the file's units with --units to go on")
+        warnings.warn(msg, UserWarning, stacklevel=3)
     normals = _vertex_normals(v, f, area)
     return Mesh(vertices=v, faces=f, vertex_normals=normals, name=name, source_hash=digest)
 

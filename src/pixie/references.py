@@ -15,7 +15,6 @@ from __future__ import annotations
 
 import json
 import os
-import tempfile
 import time
 import zipfile
 import zlib
@@ -29,8 +28,9 @@ from pixie import __version__
 from pixie.camera import backproject, backproject_depth, invert_T, transform_points
 from pixie.config import RefsConfig
 from pixie.encode import check_encodings, encode
-from pixie.errors import ReferenceSetError
+from pixie.errors import PixieError, ReferenceSetError
 from pixie.mesh import Mesh, from_arrays
+from pixie.paths import output_file, write_atomic
 from pixie.render import Renderer
 from pixie.views import camera_distance, roll, roll_angles, square_crop_K, start_K, view_poses
 
@@ -239,7 +239,23 @@ def _render_view(mesh: Mesh, cfg: RefsConfig, T_base: np.ndarray, K0: np.ndarray
     return out
 
 
-def _worker_init(mesh: Mesh, cfg: RefsConfig, K0: np.ndarray, n_render: int | None) -> None:
+def _die_with_parent(parent_pid: int) -> None:
+    """Make this worker process die with its parent (Linux: PR_SET_PDEATHSIG) and leave Ctrl-C to the parent."""
+    import signal
+
+    signal.signal(signal.SIGINT, signal.SIG_IGN)  # the parent handles Ctrl-C and stops the pool
+    try:
+        import ctypes
+
+        ctypes.CDLL(None, use_errno=True).prctl(1, signal.SIGKILL)  # 1 = PR_SET_PDEATHSIG
+    except (OSError, AttributeError):  # not Linux: workers end when the pool's pipe closes
+        pass
+    if os.getppid() != parent_pid:  # the parent died before the line above
+        os._exit(1)
+
+
+def _worker_init(mesh: Mesh, cfg: RefsConfig, K0: np.ndarray, n_render: int | None, parent_pid: int) -> None:
+    _die_with_parent(parent_pid)
     _WORKER_STATE.update(mesh=mesh, cfg=cfg, K0=K0, n_render=n_render,
                          renderer=Renderer(mesh, smooth_normals=cfg.smooth_normals))
 
@@ -261,9 +277,12 @@ def _iter_rendered_views(mesh: Mesh, cfg: RefsConfig, base: np.ndarray, K0: np.n
     from concurrent.futures import ProcessPoolExecutor
 
     ctx = mp.get_context("fork")
-    init_args = (mesh, cfg, K0, n_render)
-    with ProcessPoolExecutor(workers, mp_context=ctx, initializer=_worker_init, initargs=init_args) as ex:
+    init_args = (mesh, cfg, K0, n_render, os.getpid())
+    ex = ProcessPoolExecutor(workers, mp_context=ctx, initializer=_worker_init, initargs=init_args)
+    try:
         yield from ex.map(_worker_render, list(base), chunksize=1)
+    finally:  # on Ctrl-C or an error: drop the queued views instead of rendering them all first
+        ex.shutdown(wait=True, cancel_futures=True)
 
 
 def keypoint_xyz_from_depth(depth: np.ndarray, K: np.ndarray, T_cam_from_obj: np.ndarray,
@@ -307,27 +326,16 @@ def add_features(refs: ReferenceSet, matcher, encodings: list[str] | None = None
 # ----------------------------------------------------------------------------------------- I/O
 
 
-def check_output_path(path: str | Path) -> Path:
-    """The ``.npz`` path a set will be written to; its folder is created and must be writable."""
-    path = Path(path)
-    if path.suffix != ".npz":
-        path = path.with_suffix(".npz")
-    parent = path.parent
-    try:
-        parent.mkdir(parents=True, exist_ok=True)
-    except OSError as exc:
-        raise ReferenceSetError(f"cannot create output folder {parent}: {exc}") from exc
-    if not os.access(parent, os.W_OK):
-        raise ReferenceSetError(f"output folder {parent} is not writable")
-    if path.is_dir():
-        raise ReferenceSetError(f"output {path} is a folder")
-    return path
+def check_output_path(path: str | Path, force: bool = True) -> Path:
+    """The ``.npz`` path a set will be written to (``.npz`` appended when missing: ``part_v1.2`` gives
+    ``part_v1.2.npz``); its folder is created and must be writable; an existing file is refused unless
+    ``force`` (:func:`pixie.paths.output_file`)."""
+    return output_file(path, suffix=".npz", force=force, what="reference set")
 
 
 def save_reference_set(refs: ReferenceSet, path: str | Path) -> Path:
     """Write ``refs`` to ``path`` (.npz) atomically: a killed write leaves no partial file."""
     path = check_output_path(path)
-    parent = path.parent
     meta = {
         "format_version": FORMAT_VERSION,
         "pixie_version": __version__,
@@ -351,17 +359,8 @@ def save_reference_set(refs: ReferenceSet, path: str | Path) -> Path:
     for key, packed in refs.features.items():
         for k, v in packed.items():
             arrays[f"feat/{key}/{k}"] = v
-    fd, tmp = tempfile.mkstemp(prefix=f".{path.stem}.", suffix=".npz.tmp", dir=parent)
-    os.close(fd)
-    try:
-        with open(tmp, "wb") as fh:  # a file object: numpy would otherwise append '.npz' to the name
-            np.savez_compressed(fh, **arrays)
-            fh.flush()
-            os.fsync(fh.fileno())
-        os.replace(tmp, path)
-    except BaseException:
-        Path(tmp).unlink(missing_ok=True)
-        raise
+    # atomic (a killed write leaves no partial file) and 0644; a file object, else numpy appends '.npz'
+    write_atomic(path, lambda fh: np.savez_compressed(fh, **arrays))
     return path
 
 
@@ -381,6 +380,8 @@ def load_reference_set(path: str | Path, mesh: Mesh | None = None) -> ReferenceS
         meta = json.loads(data["meta"].tobytes().decode())
     except ValueError as exc:
         raise ReferenceSetError(f"{path}: unreadable metadata") from exc
+    if not isinstance(meta, dict):
+        raise ReferenceSetError(f"{path}: unreadable metadata")
     if meta.get("format_version") != FORMAT_VERSION:
         raise ReferenceSetError(
             f"{path} has format version {meta.get('format_version')}, this pixie reads {FORMAT_VERSION}: rebuild it"
@@ -405,6 +406,8 @@ def load_reference_set(path: str | Path, mesh: Mesh | None = None) -> ReferenceS
         )
     except (KeyError, TypeError) as exc:
         raise ReferenceSetError(f"{path} is missing data ({exc}): rebuild it") from exc
+    except PixieError as exc:  # an invalid stored config or mesh
+        raise ReferenceSetError(f"{path} holds invalid data ({exc}): rebuild it") from exc
 
 
 def _quantise_depth(depth: np.ndarray) -> dict[str, np.ndarray]:
