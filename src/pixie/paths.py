@@ -62,7 +62,7 @@ def output_file(path: str | Path, suffix: str | None = None, force: bool = True,
             raise OutputError(f"{what} {p} is not a regular file")
     if p.exists() and not force:
         raise OutputError(f"{what} {p} exists; pass --force to replace it")
-    output_dir(p.parent, what=f"folder of {what} {p}")
+    output_dir(p.parent, what=f"output folder")
     return p
 
 
@@ -70,7 +70,7 @@ def output_dir(path: str | Path, what: str = "output folder") -> Path:
     """Create (if needed) a folder that outputs go to and check that it is writable."""
     p = Path(path)
     if p.exists() and not p.is_dir():
-        raise OutputError(f"{what} {p} exists and is not a folder")
+        raise OutputError(f"cannot create {what} {p}: it exists and is not a folder")
     try:
         p.mkdir(parents=True, exist_ok=True)
     except OSError as exc:

@@ -28,7 +28,7 @@ from pixie import __version__
 from pixie.camera import backproject, backproject_depth, invert_T, transform_points
 from pixie.config import RefsConfig
 from pixie.encode import check_encodings, encode
-from pixie.errors import PixieError, ReferenceSetError
+from pixie.errors import OutputError, PixieError, ReferenceSetError
 from pixie.mesh import Mesh, from_arrays
 from pixie.paths import output_file, write_atomic
 from pixie.render import Renderer
@@ -330,7 +330,10 @@ def check_output_path(path: str | Path, force: bool = True) -> Path:
     """The ``.npz`` path a set will be written to (``.npz`` appended when missing: ``part_v1.2`` gives
     ``part_v1.2.npz``); its folder is created and must be writable; an existing file is refused unless
     ``force`` (:func:`pixie.paths.output_file`)."""
-    return output_file(path, suffix=".npz", force=force, what="reference set")
+    try:
+        return output_file(path, suffix=".npz", force=force, what="reference set")
+    except OutputError as exc:
+        raise ReferenceSetError(str(exc)) from exc
 
 
 def save_reference_set(refs: ReferenceSet, path: str | Path) -> Path:
