@@ -413,6 +413,18 @@ def test_unusual_intrinsics_warn(work, K, needle):
     assert "pixie: warning:" in err and needle in err
 
 
+def test_intrinsics_separated_by_spaces(work):
+    rc, out, err = estimate(work, K="300 300 159.5 119.5", box=work["box"].replace(",", " "))
+    assert rc in (0, 1) and "Traceback" not in err and "pose" in out, err
+
+
+def test_output_that_is_an_input_is_refused_even_with_force(work, tmp_path):
+    photo = tmp_path / "photo.png"
+    photo.write_bytes(work["photo"].read_bytes())
+    assert_error(estimate(work, "--overlay", photo, "--force", image=photo), "also an input")
+    assert photo.read_bytes() == work["photo"].read_bytes()
+
+
 # ---------------------------------------------------------------------------------------- boxes/masks
 
 
@@ -661,6 +673,16 @@ def test_bad_results_csv(lmo_dir, tmp_path, text, needles):
     assert not (tmp_path / "ev" / "scores.json").exists()
 
 
+def test_results_csv_of_no_target(lmo_dir, tmp_path):
+    assert_error(_eval(lmo_dir, tmp_path, HEADER + ROW.format(o=1).replace("2,3,", "2,99999,", 1)), "none of its 1 rows")
+
+
+def test_eval_n_points(lmo_dir, tmp_path):
+    (tmp_path / "r.csv").write_text(HEADER + ROW.format(o=1))
+    assert_error(cli("eval", lmo_dir, "--results", tmp_path / "r.csv", "-o", tmp_path / "ev", "--n-points", "0"),
+                 "--n-points")
+
+
 def test_results_csv_not_utf8(lmo_dir, tmp_path):
     assert_error(_eval(lmo_dir, tmp_path, HEADER.encode() + b"2,3,1,0.5,\xff\xfe\n"), "utf-8")
 
@@ -741,6 +763,24 @@ def test_ctrl_c_during_refs_build(work, tmp_path, workers):
     assert proc.returncode == 130, err
     assert "Traceback" not in err and "KeyboardInterrupt" not in err, err
     assert [ln for ln in err.splitlines() if ln.startswith("pixie:")] == ["pixie: interrupted"], err
+    assert not out.exists() and not list(tmp_path.glob(".big*"))
+
+
+def test_sigterm_during_refs_build(work, tmp_path):
+    out = tmp_path / "big.npz"
+    proc = _spawn("refs", "build", work["mesh"], "-o", out, "--views", "3000", "--rotations", "1", "--size", "96",
+                  "--matcher", "none", "--workers", "2")
+    try:
+        _wait_started(proc)
+        time.sleep(0.3)
+        proc.terminate()
+        _, err = proc.communicate(timeout=30)
+    finally:
+        if proc.poll() is None:
+            os.killpg(proc.pid, signal.SIGKILL)
+            proc.wait(timeout=10)
+    assert proc.returncode == 143 and "Traceback" not in err, err
+    assert [ln for ln in err.splitlines() if ln.startswith("pixie:")] == ["pixie: terminated"], err
     assert not out.exists() and not list(tmp_path.glob(".big*"))
 
 

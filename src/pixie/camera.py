@@ -6,6 +6,8 @@ so pixel (u, v) spans [u - 0.5, u + 0.5]. Poses are 4x4 ``T_cam_from_obj`` matri
 
 from __future__ import annotations
 
+import re
+
 import numpy as np
 
 from pixie.errors import CameraError
@@ -19,9 +21,11 @@ def make_K(fx: float, fy: float, cx: float, cy: float) -> np.ndarray:
 def parse_K(text: str) -> np.ndarray:
     """Parse ``"fx,fy,cx,cy"`` or nine comma-separated row-major values into K."""
     try:
-        vals = [float(v) for v in text.replace(" ", "").split(",") if v]
+        vals = [float(v) for v in re.split(r"[,\s]+", text.strip()) if v]
     except ValueError as exc:
         raise CameraError(f"cannot parse intrinsics {text!r}: expected 'fx,fy,cx,cy'") from exc
+    if not all(np.isfinite(vals)):
+        raise CameraError(f"intrinsics {text!r} have non-finite entries")
     if len(vals) == 4:
         return make_K(*vals)
     if len(vals) == 9:

@@ -13,7 +13,10 @@ from __future__ import annotations
 import argparse
 import json
 import logging
+import re
+import signal
 import sys
+import threading
 import time
 import warnings
 from pathlib import Path
@@ -26,7 +29,7 @@ from pixie.errors import PixieError, UsageError
 
 def _numbers(text: str | None, option: str, count: int | None = None, kind: type = float) -> list:
     """Comma-separated numbers of a command-line option, with an error naming the option."""
-    items = [v.strip() for v in (text or "").split(",")]
+    items = re.split(r"[,\s]+", (text or "").strip())
     try:
         vals = [kind(v) for v in items if v != ""]
     except ValueError:
@@ -146,6 +149,16 @@ def _matcher_for(refs, cfg: PixieConfig, args: argparse.Namespace) -> None:
     cfg.match.matcher = stored[0]  # use the features the set was built with instead of re-extracting
 
 
+def _not_an_input(outputs: list, inputs: list) -> None:
+    """Refuse an output path that is one of the command's inputs (``--force`` would overwrite the photo)."""
+    from pixie.errors import OutputError
+
+    ins = {Path(p).resolve() for p in inputs if p}
+    for o in outputs:
+        if o is not None and Path(o).resolve() in ins:
+            raise OutputError(f"output {o} is also an input of this command")
+
+
 def cmd_estimate(args: argparse.Namespace) -> int:
     from pixie.camera import check_image_K, parse_K
     from pixie.estimator import PoseEstimator
@@ -158,6 +171,7 @@ def cmd_estimate(args: argparse.Namespace) -> int:
     cfg = _config(args)
     out_json = output_file(args.output, force=args.force, what="result") if args.output else None
     out_png = output_file(args.overlay, suffix=".png", force=args.force, what="overlay") if args.overlay else None
+    _not_an_input([out_json, out_png], [args.refs, args.image, args.mask])
     K = parse_K(args.K)
     bbox = None if args.bbox is None else _numbers(args.bbox, "--bbox", 4)
     image = load_image(args.image)
@@ -239,6 +253,16 @@ def cmd_eval(args: argparse.Namespace) -> int:
     if bad_scenes:
         raise DatasetError(f"{args.results}: scene id(s) {bad_scenes} are not in dataset {ds.name} "
                            f"(scenes {sorted(scenes)}): results of another dataset?")
+    keys = {(t.scene_id, t.im_id, t.obj_id) for t in targets}
+    n_off = sum((r.scene_id, r.im_id, r.obj_id) not in keys for r in rows)
+    if n_off == len(rows):
+        raise DatasetError(f"{args.results}: none of its {len(rows)} rows is a target (scene, image, object) of "
+                           f"dataset {ds.name}: results of another dataset or split?")
+    if n_off:
+        warnings.warn(f"{args.results}: {n_off} of {len(rows)} rows are not targets of dataset {ds.name}; "
+                      "they are ignored")
+    if args.n_points is not None and args.n_points < 1:
+        raise UsageError(f"--n-points must be at least 1, got {args.n_points}")
     output_dir(args.out, what="output folder")
     return main_eval(args)
 
@@ -307,8 +331,29 @@ def _show_warning(message, category, filename, lineno, file=None, line=None) -> 
     print(f"pixie: warning: {message}", file=sys.stderr)
 
 
+class _Terminated(BaseException):
+    """SIGTERM, turned into an exception so that temporary files are removed and workers stopped."""
+
+
+def _on_sigterm(signum, frame) -> None:
+    raise _Terminated()
+
+
 def main(argv: list[str] | None = None) -> int:
     args = build_parser().parse_args(argv)
+    in_main = threading.current_thread() is threading.main_thread()
+    previous = signal.signal(signal.SIGTERM, _on_sigterm) if in_main else None
+    try:
+        return _main(args)
+    except _Terminated:
+        print("pixie: terminated", file=sys.stderr)
+        return 143
+    finally:
+        if in_main and previous is not None:
+            signal.signal(signal.SIGTERM, previous)
+
+
+def _main(args: argparse.Namespace) -> int:
     logging.basicConfig(level=logging.INFO if args.verbose else logging.WARNING, format="%(levelname)s %(name)s: %(message)s")
     with warnings.catch_warnings():
         warnings.simplefilter("default")
