@@ -806,3 +806,65 @@ def test_sigkill_of_parent_leaves_no_workers(work, tmp_path):
         except ProcessLookupError:
             pass
         proc.wait(timeout=10)
+
+
+# ------------------------------------------------------------------------------------- plausibility
+
+
+def _projected_box(mesh, T, K):
+    from pixie.camera import project, transform_points
+
+    uv = project(K, transform_points(T, mesh.vertices))
+    return np.r_[uv.min(0) + 0.5, uv.max(0) + 0.5]
+
+
+@pytest.fixture(scope="module")
+def plaus(work):
+    from pixie.camera import parse_K
+    from pixie.mesh import load_mesh
+
+    mesh = load_mesh(work["mesh"])
+    return mesh, work["T"], parse_K(K_TEXT)
+
+
+def _contradictions(mesh, T, K, box):
+    from pixie.plausibility import pose_contradictions
+
+    return pose_contradictions(T, K, box, mesh.hull_vertices, mesh.center, mesh.bounding_radius)
+
+
+def test_true_pose_is_plausible(plaus):
+    mesh, T, K = plaus
+    box = _projected_box(mesh, T, K)
+    assert _contradictions(mesh, T, K, box) == []
+    occluded = box.copy()
+    occluded[2] = box[0] + 0.3 * (box[2] - box[0])  # only the left 30 % visible
+    assert _contradictions(mesh, T, K, occluded) == []
+
+
+@pytest.mark.parametrize("scale_z, needle", [(20.0, "too far"), (0.12, "too close")])
+def test_pose_at_the_wrong_distance_is_implausible(plaus, scale_z, needle):
+    mesh, T, K = plaus
+    box = _projected_box(mesh, T, K)
+    T2 = T.copy()
+    T2[:3, 3] = T[:3, 3] * scale_z  # same direction, 20x farther / 8x closer
+    reasons = _contradictions(mesh, T2, K, box)
+    assert any(needle in r for r in reasons), reasons
+
+
+def test_pose_beside_the_box_is_implausible(plaus):
+    mesh, T, K = plaus
+    box = _projected_box(mesh, T, K)
+    T2 = T.copy()
+    T2[0, 3] += 0.8 * mesh.diameter  # shifted sideways by most of its size
+    assert any("of the box lies inside" in r for r in _contradictions(mesh, T2, K, box))
+
+
+def test_pose_behind_the_camera_is_implausible(plaus):
+    mesh, T, K = plaus
+    T2 = T.copy()
+    T2[:3, 3] *= -1
+    assert any("behind the camera" in r for r in _contradictions(mesh, T2, K, _projected_box(mesh, T, K)))
+    T3 = T.copy()
+    T3[:3, 3] = -T[:3, :3] @ mesh.center
+    assert any("inside the object" in r for r in _contradictions(mesh, T3, K, _projected_box(mesh, T, K)))
