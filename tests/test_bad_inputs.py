@@ -868,3 +868,48 @@ def test_pose_behind_the_camera_is_implausible(plaus):
     T3 = T.copy()
     T3[:3, 3] = -T[:3, :3] @ mesh.center
     assert any("inside the object" in r for r in _contradictions(mesh, T3, K, _projected_box(mesh, T, K)))
+
+
+# ------------------------------------------------------------------------------------- thread safety
+
+
+@pytest.mark.xfail(strict=True, reason="the estimator stops rewriting its config after the architecture refactor")
+def test_two_threads_share_one_estimator(work):
+    """2 threads x 4 estimates with one PoseEstimator give the serial results bit for bit, and the estimator
+    leaves the config it was given as it was."""
+    import copy
+    from concurrent.futures import ThreadPoolExecutor
+
+    from pixie.camera import parse_K
+    from pixie.config import RefsConfig
+    from pixie.estimator import PoseEstimator
+    from pixie.matching import get_matcher
+    from pixie.mesh import load_mesh
+    from pixie.references import build_reference_set
+
+    cfg = _fast_cfg()
+    cfg.set("refine.render_iters", 1)
+    cfg.set("match.in_plane", "reference")
+    before = copy.deepcopy(cfg.to_dict())
+    # features of roll 0 only make the estimator rotate the query: it must not write that into cfg
+    refs = build_reference_set(load_mesh(work["mesh"]), RefsConfig(n_fibonacci=4, rotations=2, size=64,
+                               encodings=["shade3_edges"], feature_rolls="first"),
+                               matcher=get_matcher("sift-nn", max_keypoints=128, window=16.0))
+    est = PoseEstimator(refs, cfg)
+    assert cfg.to_dict() == before
+    img = cv2.imread(str(work["photo"]))[..., ::-1].copy()
+    K = parse_K(K_TEXT)
+    x, y, w, h = map(int, work["box"].split(","))
+    boxes = [(x, y, w, h), (x - 3, y - 2, w + 6, h + 4), (x + 2, y + 1, w - 4, h - 2), (x - 6, y, w + 6, h + 3)]
+    serial = [est.estimate(img, K, bbox=b) for b in boxes]
+    with ThreadPoolExecutor(2) as pool:
+        runs = [pool.submit(lambda: [est.estimate(img, K, bbox=b) for b in boxes]) for _ in range(2)]
+        threaded = [r.result() for r in runs]
+    for results in threaded:
+        for a, b in zip(serial, results):
+            assert (a.T_cam_from_obj is None) == (b.T_cam_from_obj is None)
+            if a.T_cam_from_obj is not None:
+                assert np.array_equal(a.T_cam_from_obj, b.T_cam_from_obj)
+            assert (a.score, a.n_inliers, a.view, a.roll, a.failed, a.message) == \
+                   (b.score, b.n_inliers, b.view, b.roll, b.failed, b.message)
+    assert cfg.to_dict() == before
