@@ -703,6 +703,15 @@ def test_eval_unknown_metric(lmo_dir, tmp_path):
                  "unknown metric")
 
 
+def test_run_on_a_dataset_without_models(tmp_path):
+    (tmp_path / "ds").mkdir()
+    (tmp_path / "ds" / "test_targets_bop19.json").write_text('[{"scene_id":1,"im_id":1,"obj_id":1,"inst_count":1}]')
+    t0 = time.perf_counter()
+    assert_error(cli("run", tmp_path / "ds", "-o", tmp_path / "out"), "model file not found")
+    assert time.perf_counter() - t0 < 2.0
+    assert_error(cli("run", tmp_path / "nothing", "-o", tmp_path / "out"), "not found")
+
+
 def test_run_bad_objects(work, lmo_dir, tmp_path):
     assert_error(cli("run", lmo_dir, "-o", tmp_path / "run", "--objects", "1,x"), "--objects")
     assert_error(cli("run", lmo_dir, "-o", tmp_path / "run", "--objects", "77"), "77")

@@ -207,6 +207,7 @@ def cmd_estimate(args: argparse.Namespace) -> int:
 # ------------------------------------------------------------------------------------------- run
 def cmd_run(args: argparse.Namespace) -> int:
     from pixie.datasets import BopDataset
+    from pixie.errors import DatasetError
     from pixie.eval import run_eval
     from pixie.paths import output_dir
     from pixie.runner import run_dataset
@@ -218,10 +219,15 @@ def cmd_run(args: argparse.Namespace) -> int:
     output_dir(args.output, what="output folder")
     if args.refs_dir:
         output_dir(args.refs_dir, what="reference-set folder")
-    known = sorted({t.obj_id for t in BopDataset(args.dataset).targets()})
+    ds = BopDataset(args.dataset)
+    known = sorted({t.obj_id for t in ds.targets()})
     unknown = sorted(set(objects or []) - set(known))
     if unknown:
         raise UsageError(f"--objects {unknown} not among the dataset's target objects {known}")
+    for o in objects or known:  # every model is there before hours of work start
+        ds.model_path(o)
+    if not ds.split_dir.is_dir():
+        raise DatasetError(f"split folder not found: {ds.split_dir}")
     t0 = time.perf_counter()
     csv = run_dataset(args.dataset, args.output, cfg, objects=objects, max_targets=args.max_targets,
                       refs_dir=args.refs_dir)
