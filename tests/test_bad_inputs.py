@@ -817,6 +817,39 @@ def test_sigkill_of_parent_leaves_no_workers(work, tmp_path):
         proc.wait(timeout=10)
 
 
+# ------------------------------------------------------------------------------------------ Python API
+
+
+def test_api_wrong_argument_types(work):
+    from pixie.camera import validate_K
+    from pixie.config import PixieConfig
+    from pixie.errors import PixieError
+    from pixie.mesh import load_mesh
+    from pixie.query import load_image
+    from pixie.references import build_reference_set, load_reference_set
+
+    for call in (lambda: load_mesh(None), lambda: load_image(3), lambda: load_reference_set(None),
+                 lambda: build_reference_set("part.ply"), lambda: validate_K(None), lambda: validate_K("K"),
+                 lambda: build_reference_set(load_mesh(work["mesh"]), object()),
+                 lambda: PixieConfig.from_dict({"refs": 5}), lambda: PixieConfig.from_dict([1, 2])):
+        with pytest.raises(PixieError):
+            call()
+
+
+def test_api_build_accepts_a_whole_config(work):
+    from pixie.config import PixieConfig
+    from pixie.mesh import load_mesh
+    from pixie.references import build_reference_set
+
+    cfg = PixieConfig()
+    cfg.set("refs.n_fibonacci", 0)
+    cfg.set("refs.rotations", 1)
+    cfg.set("refs.size", 32)
+    cfg.set("refs.encodings", "depth")
+    refs = build_reference_set(load_mesh(work["mesh"]), cfg)
+    assert refs.n_views == 6 and refs.size == 32
+
+
 # ------------------------------------------------------------------------------------- plausibility
 
 

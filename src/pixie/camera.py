@@ -48,7 +48,10 @@ def validate_K(K: np.ndarray, image_size: tuple[int, int] | None = None) -> np.n
         Wrong shape, non-finite entries, non-positive focal lengths, a bottom row other than
         (0, 0, 1), or a principal point outside the image.
     """
-    K = np.asarray(K, dtype=np.float64)
+    try:
+        K = np.asarray(K, dtype=np.float64)
+    except (TypeError, ValueError) as exc:
+        raise CameraError(f"K must be a 3x3 matrix of numbers, got {type(K).__name__}") from exc
     if K.shape != (3, 3):
         raise CameraError(f"K must be 3x3, got shape {K.shape}")
     if not np.all(np.isfinite(K)):

@@ -8,6 +8,7 @@ from __future__ import annotations
 
 import hashlib
 import logging
+import os
 import warnings
 from dataclasses import dataclass, field
 from pathlib import Path
@@ -166,6 +167,10 @@ def load_mesh(path: str | Path, units: str = "mm", implausible: str = "warn") ->
     """
     import trimesh
 
+    if not isinstance(path, (str, os.PathLike)):
+        raise MeshError(f"mesh path must be a str or Path, got {type(path).__name__}")
+    if implausible not in ("warn", "error"):
+        raise MeshError(f"implausible must be 'warn' or 'error', got {implausible!r}")
     path = Path(path)
     if not path.is_file():
         raise MeshError(f"mesh file not found: {path}")

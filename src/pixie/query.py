@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import os
 from dataclasses import dataclass
 from pathlib import Path
 
@@ -54,6 +55,8 @@ def load_image(path: str | Path, max_pixels: int = MAX_IMAGE_PIXELS) -> np.ndarr
 
     from PIL import Image
 
+    if not isinstance(path, (str, os.PathLike)):
+        raise ImageError(f"image path must be a str or Path, got {type(path).__name__}")
     path = Path(path)
     if not path.is_file():
         raise ImageError(f"image not found: {path}")

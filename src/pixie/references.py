@@ -26,7 +26,7 @@ import numpy as np
 
 from pixie import __version__
 from pixie.camera import backproject, backproject_depth, invert_T, transform_points
-from pixie.config import RefsConfig
+from pixie.config import PixieConfig, RefsConfig
 from pixie.encode import check_encodings, encode
 from pixie.errors import OutputError, PixieError, ReferenceSetError
 from pixie.mesh import Mesh, from_arrays
@@ -118,7 +118,7 @@ def build_reference_set(
     Parameters
     ----------
     mesh : Mesh
-    config : RefsConfig
+    config : RefsConfig (or a PixieConfig, whose ``refs`` section is used)
     matcher : pixie.matching Matcher, optional
         When given, features of every encoded image (all rolls) are extracted and stored.
     progress : callable(done, total), optional
@@ -127,7 +127,13 @@ def build_reference_set(
         Processes that render and encode in parallel (views are independent); features are
         extracted in this process while the workers render the next views.
     """
-    cfg = config or RefsConfig()
+    if not isinstance(mesh, Mesh):
+        raise ReferenceSetError(f"build_reference_set needs a pixie Mesh (pixie.load_mesh), got {type(mesh).__name__}")
+    cfg = config.refs if isinstance(config, PixieConfig) else (config or RefsConfig())
+    if not isinstance(cfg, RefsConfig):
+        raise ReferenceSetError(f"config must be a RefsConfig or PixieConfig, got {type(config).__name__}")
+    if isinstance(workers, bool) or not isinstance(workers, int):
+        raise ReferenceSetError(f"workers must be a whole number, got {workers!r}")
     encs = check_encodings(cfg.encodings)
     t0 = time.perf_counter()
     S = int(cfg.size)
@@ -369,6 +375,8 @@ def save_reference_set(refs: ReferenceSet, path: str | Path) -> Path:
 
 def load_reference_set(path: str | Path, mesh: Mesh | None = None) -> ReferenceSet:
     """Read a reference set; with ``mesh`` given, refuse a set built from another mesh file."""
+    if not isinstance(path, (str, os.PathLike)):
+        raise ReferenceSetError(f"reference set path must be a str or Path, got {type(path).__name__}")
     path = Path(path)
     if not path.is_file():
         raise ReferenceSetError(f"reference set not found: {path} (build it with `pixie refs build MESH -o {path}`)")
