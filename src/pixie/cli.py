@@ -23,8 +23,20 @@ from pathlib import Path
 
 import numpy as np
 
-from pixie.config import PixieConfig
-from pixie.errors import PixieError, UsageError
+from pixie.camera import check_image_K, parse_K
+from pixie.config import MatchConfig, PixieConfig
+from pixie.encode import check_encodings
+from pixie.errors import DatasetError, OutputError, PixieError, ReferenceSetError, UsageError
+from pixie.estimator import PoseEstimator
+from pixie.eval import (BopDataset, add_eval_arguments, main_eval, normalize_metrics, read_results_csv,
+                        run_eval)
+from pixie.mesh import load_mesh
+from pixie.paths import output_dir, output_file, write_atomic
+from pixie.query import bbox_from_mask, check_bbox, check_mask, load_image
+from pixie.references import build_reference_set, check_output_path, load_reference_set, save_reference_set
+from pixie.render import Renderer
+from pixie.runner import make_matcher, run_dataset
+from pixie.viz import contact_sheet, overlay_pose, save_png
 
 
 def _numbers(text: str | None, option: str, count: int | None = None, kind: type = float) -> list:
@@ -69,16 +81,10 @@ def _tqdm_progress(total_label: str):
 # ------------------------------------------------------------------------------------------- refs
 def _load_mesh(path: str, units: str | None):
     """The mesh for a command: with ``--units`` omitted, millimetres, and an implausible size is an error."""
-    from pixie.mesh import load_mesh
-
     return load_mesh(path, units=units or "mm", implausible="warn" if units else "error")
 
 
 def cmd_refs_build(args: argparse.Namespace) -> int:
-    from pixie.encode import check_encodings
-    from pixie.references import build_reference_set, check_output_path, save_reference_set
-    from pixie.runner import make_matcher
-
     cfg = _config(args)
     if args.workers < 1:
         raise UsageError(f"--workers must be at least 1, got {args.workers}")
@@ -109,11 +115,6 @@ def cmd_refs_build(args: argparse.Namespace) -> int:
 
 
 def cmd_refs_show(args: argparse.Namespace) -> int:
-    from pixie.encode import check_encodings
-    from pixie.paths import output_file
-    from pixie.references import load_reference_set
-    from pixie.viz import contact_sheet, save_png
-
     out = output_file(args.output, suffix=".png", force=args.force, what="contact sheet")
     if args.tile < 8:
         raise UsageError(f"--tile must be at least 8 px, got {args.tile}")
@@ -125,7 +126,7 @@ def cmd_refs_show(args: argparse.Namespace) -> int:
     encs = check_encodings(args.encodings.split(",")) if args.encodings else None
     sheet = contact_sheet(refs, encs, views, tile=args.tile)
     save_png(out, sheet)
-    feats = ", ".join(f"{k} ({len(v['feat_image_sizes'])} images)" for k, v in refs.features.items()) or "none"
+    feats = ", ".join(f"{k} ({len(refs.features_for(*k.split('/', 1))[0])} images)" for k in refs.features) or "none"
     print(f"{args.refs}: {refs.mesh.name}, {refs.n_views} views x {refs.n_rolls} rolls at {refs.size} px; "
           f"features: {feats}; sheet -> {out}")
     return 0
@@ -134,9 +135,6 @@ def cmd_refs_show(args: argparse.Namespace) -> int:
 # --------------------------------------------------------------------------------------- estimate
 def _matcher_for(refs, cfg: PixieConfig, args: argparse.Namespace) -> None:
     """Use the features stored in the set; refuse a matcher the user asked for that the set has none of."""
-    from pixie.config import MatchConfig
-    from pixie.errors import ReferenceSetError
-
     stored = sorted({k.split("/")[0] for k in refs.features})
     if not stored or cfg.match.matcher in stored:
         return
@@ -151,8 +149,6 @@ def _matcher_for(refs, cfg: PixieConfig, args: argparse.Namespace) -> None:
 
 def _not_an_input(outputs: list, inputs: list) -> None:
     """Refuse an output path that is one of the command's inputs (``--force`` would overwrite the photo)."""
-    from pixie.errors import OutputError
-
     ins = {Path(p).resolve() for p in inputs if p}
     for o in outputs:
         if o is not None and Path(o).resolve() in ins:
@@ -160,14 +156,6 @@ def _not_an_input(outputs: list, inputs: list) -> None:
 
 
 def cmd_estimate(args: argparse.Namespace) -> int:
-    from pixie.camera import check_image_K, parse_K
-    from pixie.estimator import PoseEstimator
-    from pixie.paths import output_file, write_atomic
-    from pixie.query import bbox_from_mask, check_bbox, check_mask, load_image
-    from pixie.references import load_reference_set
-    from pixie.render import Renderer
-    from pixie.viz import overlay_pose, save_png
-
     cfg = _config(args)
     out_json = output_file(args.output, force=args.force, what="result") if args.output else None
     out_png = output_file(args.overlay, suffix=".png", force=args.force, what="overlay") if args.overlay else None
@@ -206,12 +194,6 @@ def cmd_estimate(args: argparse.Namespace) -> int:
 
 # ------------------------------------------------------------------------------------------- run
 def cmd_run(args: argparse.Namespace) -> int:
-    from pixie.datasets import BopDataset
-    from pixie.errors import DatasetError
-    from pixie.eval import run_eval
-    from pixie.paths import output_dir
-    from pixie.runner import run_dataset
-
     cfg = _config(args)
     objects = None if not args.objects else _numbers(args.objects, "--objects", kind=int)
     if args.max_targets is not None and args.max_targets < 1:
@@ -239,11 +221,6 @@ def cmd_run(args: argparse.Namespace) -> int:
 
 def cmd_eval(args: argparse.Namespace) -> int:
     """``pixie eval``: the results file and the output folder are checked before scoring starts."""
-    from pixie.datasets import BopDataset, read_results_csv
-    from pixie.errors import DatasetError
-    from pixie.eval import main_eval, normalize_metrics
-    from pixie.paths import output_dir
-
     normalize_metrics([m for m in args.metrics.split(",") if m])
     ds = BopDataset(args.dataset)
     rows = read_results_csv(args.results)
@@ -274,8 +251,6 @@ def cmd_eval(args: argparse.Namespace) -> int:
 
 
 def build_parser() -> argparse.ArgumentParser:
-    from pixie.eval import add_eval_arguments
-
     p = argparse.ArgumentParser(prog="pixie", description="6D object pose from one RGB photo and an untextured CAD model")
     p.add_argument("-v", "--verbose", action="store_true")
     sub = p.add_subparsers(dest="command", required=True)

@@ -202,8 +202,6 @@ class RefineConfig(_Section):
     # on LM-O (48 targets) 2 iterations x 6 hypotheses doubled ADD(-S)<0.1d (bench/RESULTS.md).
     render_iters: int = 2
     render_hypotheses: int = 6
-    render_seeds: int = 0  # + the poses of this many best-ranked reference (view, roll) pairs themselves
-    render_window: float | None = None  # NN window for aligned matching, fraction of refs.size (None: match.window)
 
 
 _SECTION_NAMES = {RefsConfig: "refs", QueryConfig: "query", MatchConfig: "match", PoseConfig: "pose",
