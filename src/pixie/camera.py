@@ -7,6 +7,7 @@ so pixel (u, v) spans [u - 0.5, u + 0.5]. Poses are 4x4 ``T_cam_from_obj`` matri
 from __future__ import annotations
 
 import re
+import warnings
 
 import numpy as np
 
@@ -231,8 +232,6 @@ def check_image_K(K: np.ndarray, image_size: tuple[int, int], warn: bool = True)
                           f"view over the {w}x{h} image, impossible for a pinhole camera ({lo:g}..{hi:g} deg): "
                           "is the focal length in pixels and for this image size?")
     if warn:
-        import warnings
-
         for msg in intrinsics_warnings(K, image_size):
             warnings.warn(msg, UserWarning, stacklevel=2)
     return K

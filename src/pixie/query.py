@@ -3,11 +3,14 @@
 from __future__ import annotations
 
 import os
+import re
+import warnings
 from dataclasses import dataclass
 from pathlib import Path
 
 import cv2
 import numpy as np
+from PIL import Image
 
 from pixie.errors import ImageError
 
@@ -51,10 +54,6 @@ def load_image(path: str | Path, max_pixels: int = MAX_IMAGE_PIXELS) -> np.ndarr
         Missing, empty, undecodable or truncated file; more than ``max_pixels`` pixels (checked from the
         header, before decoding); floating-point pixels.
     """
-    import warnings
-
-    from PIL import Image
-
     if not isinstance(path, (str, os.PathLike)):
         raise ImageError(f"image path must be a str or Path, got {type(path).__name__}")
     path = Path(path)
@@ -67,8 +66,6 @@ def load_image(path: str | Path, max_pixels: int = MAX_IMAGE_PIXELS) -> np.ndarr
             warnings.simplefilter("ignore", Image.DecompressionBombWarning)
             im = Image.open(path)
     except Image.DecompressionBombError as exc:  # Pillow's own limit, above ours: refused from the header too
-        import re
-
         n = re.search(r"\((\d+) pixels\)", str(exc))
         size = f"{int(n.group(1)) / 1e6:.0f} MP" if n else "too many pixels"
         raise ImageError(f"image {path}: its header claims {size}; pixie reads at most {max_pixels / 1e6:.0f} MP: "

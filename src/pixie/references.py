@@ -13,8 +13,10 @@ hash and the build config; a stale, foreign or corrupt file raises :class:`Refer
 
 from __future__ import annotations
 
+import ctypes
 import json
 import os
+import signal
 import time
 import zipfile
 import zlib
@@ -283,12 +285,8 @@ def _render_view(mesh: Mesh, cfg: RefsConfig, T_base: np.ndarray, K0: np.ndarray
 
 def _die_with_parent(parent_pid: int) -> None:
     """Make this worker process die with its parent (Linux: PR_SET_PDEATHSIG) and leave Ctrl-C to the parent."""
-    import signal
-
     signal.signal(signal.SIGINT, signal.SIG_IGN)  # the parent handles Ctrl-C and stops the pool
     try:
-        import ctypes
-
         ctypes.CDLL(None, use_errno=True).prctl(1, signal.SIGKILL)  # 1 = PR_SET_PDEATHSIG
     except (OSError, AttributeError):  # not Linux: workers end when the pool's pipe closes
         pass
