@@ -32,7 +32,7 @@ from pixie.eval import (BopDataset, add_eval_arguments, main_eval, normalize_met
                         run_eval)
 from pixie.mesh import load_mesh
 from pixie.paths import output_dir, output_file, write_atomic
-from pixie.query import bbox_from_mask, check_bbox, check_mask, load_image
+from pixie.query import bbox_from_mask, check_bbox, check_query_mask, load_image
 from pixie.references import build_reference_set, check_output_path, load_reference_set, save_reference_set
 from pixie.render import Renderer
 from pixie.runner import make_matcher, run_dataset
@@ -166,11 +166,11 @@ def cmd_estimate(args: argparse.Namespace) -> int:
     K = check_image_K(K, image.shape[:2])
     mask = None
     if args.mask:
-        mask = check_mask(load_image(args.mask)[..., 0] > 127, image.shape[:2])
+        mask = check_query_mask(load_image(args.mask)[..., 0] > 127, image.shape[:2])
     box = check_bbox(bbox if bbox is not None else bbox_from_mask(mask) if mask is not None
                      else [0, 0, image.shape[1], image.shape[0]], image.shape[:2])
     if mask is not None:
-        check_mask(mask, image.shape[:2], box)
+        check_query_mask(mask, image.shape[:2], box)
     refs = load_reference_set(args.refs)
     _matcher_for(refs, cfg, args)
     est = PoseEstimator(refs, cfg)

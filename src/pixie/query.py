@@ -146,7 +146,7 @@ def check_bbox(bbox, image_shape: tuple[int, int]) -> np.ndarray:
     return np.array([x0, y0, x1, y1])
 
 
-def check_mask(mask, image_shape: tuple[int, int], box_xyxy: np.ndarray | None = None) -> np.ndarray:
+def check_query_mask(mask, image_shape: tuple[int, int], box_xyxy: np.ndarray | None = None) -> np.ndarray:
     """A query mask as bool (H, W), checked against the image and (optionally) the box.
 
     Raises
