@@ -970,3 +970,35 @@ def test_estimator_flags_a_pose_that_contradicts_its_box(work, plaus):
     assert not good.failed and good.message == "ok"
     assert bad.failed and bad.message.startswith("implausible") and "too far" in bad.message
     assert bad.T_cam_from_obj is far  # the best guess is still returned
+
+
+# ------------------------------------------------------------------------------------------ pixie run
+
+TINY_RUN = ["--objects", "1", "--max-targets", "2", "--no-report", "--set", "refs.n_fibonacci=4", "--set",
+            "refs.rotations=2", "--set", "refs.size=64", "--set", "refs.encodings=[shade3_edges]", *FAST]
+
+
+def test_run_resume_detects_cut_lines_and_changed_config(lmo_dir, tmp_path):
+    out = tmp_path / "run"
+    rc, text, err = cli("run", lmo_dir, "-o", out, *TINY_RUN)
+    assert rc == 0, err
+    assert "2 targets, 0 cached, 2 to run" in text
+    jsonl = out / "per_target.jsonl"
+    lines = jsonl.read_text().splitlines()
+    assert len(lines) == 2
+    for p in (jsonl, out / "results.csv", out / "config.json", out / "scores.json"):
+        assert p.stat().st_mode & 0o777 == 0o644 & ~_umask(), p
+    # a crash cut the last line; the same config resumes: the cut line is reported and its target redone
+    jsonl.write_text(lines[0] + "\n" + lines[1][: len(lines[1]) // 2])
+    rc, text, err = cli("run", lmo_dir, "-o", out, *TINY_RUN)
+    assert rc == 0, err
+    assert "cut or corrupt (line 2)" in text and "2 targets, 1 cached, 1 to run" in text
+    done = [json.loads(ln) for ln in jsonl.read_text().splitlines()[:1] + jsonl.read_text().splitlines()[2:]]
+    assert sorted(tuple(d["key"]) for d in done) == sorted(tuple(json.loads(ln)["key"]) for ln in lines)
+    rows = (out / "results.csv").read_text().splitlines()[1:]
+    assert len(rows) >= 1 and {tuple(map(int, r.split(",")[:3])) for r in rows} <= {tuple(json.loads(ln)["key"]) for ln in lines}
+    # another config: nothing is reused, and config.json says which config made the results
+    rc, text, err = cli("run", lmo_dir, "-o", out, *TINY_RUN, "--set", "query.crop_pad=1.3")
+    assert rc == 0, err
+    assert "2 targets, 0 cached, 2 to run" in text and "another config" in text
+    assert json.loads((out / "config.json").read_text())["query"]["crop_pad"] == 1.3

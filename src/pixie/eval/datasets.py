@@ -37,6 +37,7 @@ import numpy as np
 
 from pixie.errors import DatasetError
 from pixie.geometry import rodrigues
+from pixie.paths import write_atomic
 
 RESULTS_HEADER = "scene_id,im_id,obj_id,score,R,t,time"
 # Tolerance on |R R^T - I| for rotations read from result files. BOP files carry ~6-8
@@ -563,8 +564,7 @@ def write_results_csv(path: str | Path, estimates: Iterable[PoseEstimate]) -> Pa
         R = " ".join(f"{v:.9g}" for v in T[:3, :3].reshape(-1))
         t = " ".join(f"{v:.9g}" for v in T[:3, 3])
         lines.append(f"{e.scene_id},{e.im_id},{e.obj_id},{e.score:.9g},{R},{t},{e.time:.6g}")
-    path.write_text("\n".join(lines) + "\n", encoding="utf-8")
-    return path
+    return write_atomic(path, "\n".join(lines) + "\n")
 
 
 def gt_as_estimates(dataset: BopDataset, targets: list[Target] | None = None) -> list[PoseEstimate]:
