@@ -167,15 +167,15 @@ def run_dataset(dataset_root: str | Path, out_dir: str | Path, config: PixieConf
     if max_targets is not None and len(targets) > max_targets:
         targets = [targets[i] for i in np.linspace(0, len(targets) - 1, max_targets).round().astype(int)]
     journal = Journal(out / "per_target.jsonl", key=lambda rec: tuple(rec["key"]))
-    if journal.bad_lines:
-        echo(f"warning: {journal.path}: {len(journal.bad_lines)} line(s) cut or corrupt (line "
-             f"{', '.join(map(str, journal.bad_lines[:10]))}{' ...' if len(journal.bad_lines) > 10 else ''}); "
-             "their targets run again")
     prints = {o: run_fingerprint(cfg, ds, o) for o in sorted({t.obj_id for t in targets})}
     cached = {_tkey(t) for t in targets if _valid_record(journal.get(_tkey(t)), prints[t.obj_id])}
     stale = sum(_tkey(t) in journal and _tkey(t) not in cached for t in targets)
     todo = [t for t in targets if _tkey(t) not in cached]
     echo(f"{len(targets)} targets, {len(cached)} cached, {len(todo)} to run -> {out}")
+    if journal.bad_lines:
+        echo(f"warning: {journal.path}: {len(journal.bad_lines)} line(s) cut or corrupt (line "
+             f"{', '.join(map(str, journal.bad_lines[:10]))}{' ...' if len(journal.bad_lines) > 10 else ''}); "
+             "their targets run again")
     if stale:
         echo(f"{stale} earlier result(s) in {journal.path.name} were made with another config, code version, dataset "
              "or model: they run again")
