@@ -8,6 +8,7 @@ import cv2
 import numpy as np
 
 from pixie.encode import shade
+from pixie.paths import write_atomic
 from pixie.references import ReferenceSet, encoding_images
 from pixie.render import Renderer
 
@@ -83,9 +84,10 @@ def draw_matches(img_q: np.ndarray, img_r: np.ndarray, kq: np.ndarray, kr: np.nd
 
 
 def save_png(path: str | Path, rgb: np.ndarray) -> Path:
-    """Write an RGB (or grey) image as PNG, creating the folder."""
+    """Write an RGB (or grey) image as PNG (whatever the suffix), atomically, creating the folder."""
     path = Path(path)
     path.parent.mkdir(parents=True, exist_ok=True)
-    if not cv2.imwrite(str(path), _rgb(rgb)[..., ::-1]):
-        raise OSError(f"cannot write image {path}")
-    return path
+    ok, buf = cv2.imencode(".png", _rgb(rgb)[..., ::-1])
+    if not ok:
+        raise OSError(f"cannot encode image {path}")
+    return write_atomic(path, buf.tobytes())  # never half a file; 0644
