@@ -210,7 +210,7 @@ def test_existing_output_is_refused_before_any_work(work, tmp_path):
     t0 = time.perf_counter()
     msg = assert_error(cli("refs", "build", work["mesh"], "-o", target, "--views", "400", "--matcher", "none"),
                        "exists", "--force")
-    assert time.perf_counter() - t0 < 2.0, "the existing output was found only after rendering"
+    assert time.perf_counter() - t0 < 5.0, "the existing output was found only after rendering"
     assert target.read_bytes() == b"precious" and str(target) in msg
 
 
@@ -316,7 +316,7 @@ def test_huge_image_header_refused_before_decoding(work, tmp_path):
     path = _png_header_only(tmp_path / "huge.png", 60000, 60000)
     t0 = time.perf_counter()
     assert_error(estimate(work, image=path), "3600 MP", "at most")
-    assert time.perf_counter() - t0 < 3.0
+    assert time.perf_counter() - t0 < 5.0
 
 
 def test_image_channel_formats_load_as_rgb(work, tmp_path):
@@ -609,7 +609,7 @@ def test_yaml_missing(work, tmp_path):
 def test_bad_set_values(work, tmp_path, item, needles):
     t0 = time.perf_counter()
     assert_error(cli("refs", "build", work["mesh"], "-o", tmp_path / "o.npz", "--set", item), *needles)
-    assert time.perf_counter() - t0 < 2.0  # refused before any rendering
+    assert time.perf_counter() - t0 < 5.0  # refused before any rendering (a default build takes minutes)
 
 
 def test_string_for_a_list_is_a_one_item_list():
@@ -707,7 +707,7 @@ def test_run_on_a_dataset_without_models(tmp_path):
     (tmp_path / "ds" / "test_targets_bop19.json").write_text('[{"scene_id":1,"im_id":1,"obj_id":1,"inst_count":1}]')
     t0 = time.perf_counter()
     assert_error(cli("run", tmp_path / "ds", "-o", tmp_path / "out"), "model file not found")
-    assert time.perf_counter() - t0 < 2.0
+    assert time.perf_counter() - t0 < 5.0
     assert_error(cli("run", tmp_path / "nothing", "-o", tmp_path / "out"), "not found")
 
 
