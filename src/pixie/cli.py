@@ -162,6 +162,7 @@ def cmd_estimate(args: argparse.Namespace) -> int:
     _not_an_input([out_json, out_png], [args.refs, args.image, args.mask])
     K = parse_K(args.K)
     bbox = None if args.bbox is None else _numbers(args.bbox, "--bbox", 4)
+    refs = load_reference_set(args.refs)
     image = load_image(args.image)
     K = check_image_K(K, image.shape[:2])
     mask = None
@@ -171,7 +172,6 @@ def cmd_estimate(args: argparse.Namespace) -> int:
                      else [0, 0, image.shape[1], image.shape[0]], image.shape[:2])
     if mask is not None:
         check_query_mask(mask, image.shape[:2], box)
-    refs = load_reference_set(args.refs)
     _matcher_for(refs, cfg, args)
     est = PoseEstimator(refs, cfg)
     res = est.estimate(image, K, bbox=bbox, mask=mask)
