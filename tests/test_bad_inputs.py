@@ -256,6 +256,18 @@ def test_refs_show_output_checked(work, tmp_path):
     assert_error(cli("refs", "show", work["refs"], "-o", tmp_path), "folder")
 
 
+def test_refs_show_bad_tile(work, tmp_path):
+    assert_error(cli("refs", "show", work["refs"], "-o", tmp_path / "s.png", "--tile", "100000"), "--tile")
+
+
+def test_blank_photo_is_a_failed_pose_not_a_confident_one(work, tmp_path):
+    cv2.imwrite(str(tmp_path / "grey.png"), np.full((H, W, 3), 128, np.uint8))
+    rc, out, err = estimate(work, "-o", tmp_path / "r.json", image=tmp_path / "grey.png")
+    assert rc == 1 and "Traceback" not in err, (out, err)
+    res = json.loads((tmp_path / "r.json").read_text())
+    assert res["failed"] and ("contrast" in res["message"] or "no pose" in res["message"])
+
+
 def test_refs_show_bad_view_list(work, tmp_path):
     assert_error(cli("refs", "show", work["refs"], "-o", tmp_path / "s.png", "--views", "0,x"), "--views")
     assert_error(cli("refs", "show", work["refs"], "-o", tmp_path / "s.png", "--views", "0,99"), "99")
@@ -696,10 +708,11 @@ def test_eval_dataset_missing(tmp_path):
                  "dataset folder not found")
 
 
-def test_eval_unknown_metric(lmo_dir, tmp_path):
+@pytest.mark.parametrize("metrics, needle", [("xyz", "unknown metric"), ("", "no metric"), (",,", "no metric")])
+def test_eval_bad_metrics(lmo_dir, tmp_path, metrics, needle):
     (tmp_path / "r.csv").write_text(HEADER + ROW.format(o=1))
-    assert_error(cli("eval", lmo_dir, "--results", tmp_path / "r.csv", "-o", tmp_path / "ev", "--metrics", "xyz"),
-                 "unknown metric")
+    assert_error(cli("eval", lmo_dir, "--results", tmp_path / "r.csv", "-o", tmp_path / "ev", "--metrics", metrics),
+                 needle)
 
 
 def test_run_on_a_dataset_without_models(tmp_path):
@@ -970,6 +983,9 @@ def test_estimator_flags_a_pose_that_contradicts_its_box(work, plaus):
     assert not good.failed and good.message == "ok"
     assert bad.failed and bad.message.startswith("implausible") and "too far" in bad.message
     assert bad.T_cam_from_obj is far  # the best guess is still returned
+    blank = est.prepare(np.full_like(img, 128), K, bbox=[int(v) for v in work["box"].split(",")])
+    flat = est.result([Hypothesis(T, 5.0, 20, 30, 0, 0, 0.0, 1.0)], {}, blank)
+    assert flat.failed and "no contrast" in flat.message
 
 
 # ------------------------------------------------------------------------------------------ pixie run

@@ -116,8 +116,8 @@ def cmd_refs_build(args: argparse.Namespace) -> int:
 
 def cmd_refs_show(args: argparse.Namespace) -> int:
     out = output_file(args.output, suffix=".png", force=args.force, what="contact sheet")
-    if args.tile < 8:
-        raise UsageError(f"--tile must be at least 8 px, got {args.tile}")
+    if not 8 <= args.tile <= 1024:
+        raise UsageError(f"--tile must be 8..1024 px, got {args.tile}")
     refs = load_reference_set(args.refs)
     views = None if args.views is None else _numbers(args.views, "--views", kind=int)
     bad = [v for v in views or [] if not 0 <= v < refs.n_views]
@@ -221,6 +221,8 @@ def cmd_run(args: argparse.Namespace) -> int:
 
 def cmd_eval(args: argparse.Namespace) -> int:
     """``pixie eval``: the results file and the output folder are checked before scoring starts."""
+    if not [m for m in args.metrics.split(",") if m.strip()]:
+        raise UsageError(f"--metrics names no metric, got {args.metrics!r}")
     normalize_metrics([m for m in args.metrics.split(",") if m])
     ds = BopDataset(args.dataset)
     rows = read_results_csv(args.results)

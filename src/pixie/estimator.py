@@ -55,6 +55,8 @@ from pixie.views import roll_angles
 
 log = logging.getLogger(__name__)
 
+MIN_CROP_CONTRAST = 2.0  # grey-level std of the query crop below which nothing in it can be matched
+
 # (view, roll) -> (pts2d (N, 2) photo px, pts3d (N, 3) object mm, similarities (N,)), float64
 Correspondences = dict[tuple[int, int], tuple[np.ndarray, np.ndarray, np.ndarray]]
 
@@ -475,5 +477,9 @@ class PoseEstimator:
                                           mesh.bounding_radius)
             if reasons:
                 failed, msg = True, "implausible: " + "; ".join(reasons)
+            contrast = float(np.std(q.crops[0].image))
+            if contrast < MIN_CROP_CONTRAST:
+                failed, msg = True, (f"the object crop has no contrast (grey-level std {contrast:.1f}): a blank or "
+                                     "saturated image, or a box on a featureless area")
         return PoseResult(best.T_cam_from_obj, best.score, best.n_inliers, failed, msg, best.view, best.roll,
                           confidence, distinct, timings, warns)
