@@ -323,6 +323,7 @@ def run_pipeline(ds: BopDataset, targets: list[Target], cfg: PixieConfig, name: 
             rec = {"hyp_add_ok": hyp_ok, "scene_id": t.scene_id, "im_id": t.im_id, "obj_id": t.obj_id, "visib": g.visib_fract,
                    "T": None if res.T_cam_from_obj is None else res.T_cam_from_obj.tolist(), "score": res.score,
                    "n_inliers": res.n_inliers, "failed": res.failed, "view": res.view, "roll": res.roll,
+                   "confidence": res.confidence, "message": res.message,
                    "seconds": dt, "timings": res.timings, **err}
             done.append(rec)
             n_run += 1

@@ -19,10 +19,11 @@ SRC = Path(__file__).resolve().parents[1] / "src" / "pixie"
 
 # Lowest first. A module may import modules of its own or a lower layer. Packages are listed by prefix.
 LAYERS: list[tuple[str, ...]] = [
-    ("pixie._version", "pixie.errors", "pixie.outputs"),
+    ("pixie._version", "pixie.errors", "pixie.paths"),
     ("pixie.config", "pixie.weights", "pixie.geometry"),
     ("pixie.camera", "pixie.mesh"),
-    ("pixie.render", "pixie.views", "pixie.encode", "pixie.features", "pixie.query"),
+    ("pixie.render", "pixie.views", "pixie.encode", "pixie.features", "pixie.query",
+     "pixie.plausibility"),
     ("pixie.references",),
     ("pixie.matching",),
     ("pixie.pose",),

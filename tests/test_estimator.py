@@ -91,6 +91,6 @@ def test_config_values_are_checked(proc_mesh, build_refs):
     refs = build_refs(proc_mesh, cfg.refs, matcher=make_matcher(cfg))
     for key, value, message in (("match.in_plane", "photo", "in_plane"), ("pose.threshold_space", "px", "threshold")):
         bad = PixieConfig.from_dict(cfg.to_dict())
-        bad.set(key, value)
-        with pytest.raises(ConfigError, match=message):
-            PoseEstimator(refs, bad)
+        with pytest.raises(ConfigError, match=message):  # refused when set, before any estimator exists
+            bad.set(key, value)
+    PoseEstimator(refs, cfg)  # the valid config builds

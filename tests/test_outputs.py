@@ -10,7 +10,7 @@ import numpy as np
 import pytest
 
 from pixie.errors import PixieError, ReferenceSetError
-from pixie.outputs import write_atomic, write_with
+from pixie.paths import write_atomic
 from pixie.viz import save_png
 
 
@@ -30,7 +30,7 @@ def test_failed_write_keeps_the_old_file(tmp_path: Path) -> None:
         raise RuntimeError("killed")
 
     with pytest.raises(RuntimeError):
-        write_with(p, boom)
+        write_atomic(p, boom)
     assert p.read_text() == "old" and [x.name for x in tmp_path.iterdir()] == ["r.json"]
 
 

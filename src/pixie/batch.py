@@ -28,7 +28,6 @@ import csv
 import hashlib
 import html
 import json
-import os
 import time
 from dataclasses import dataclass
 from pathlib import Path
@@ -42,7 +41,7 @@ from pixie.config import PixieConfig
 from pixie.errors import ConfigError, ImageError, PixieError
 from pixie.estimator import PoseEstimator
 from pixie.eval.datasets import PoseEstimate, write_results_csv
-from pixie.outputs import write_atomic
+from pixie.paths import write_atomic
 from pixie.query import bbox_from_mask, check_bbox, load_image
 from pixie.references import load_reference_set
 from pixie.render import Renderer
@@ -340,8 +339,7 @@ def run_batch(items: list[BatchItem], out_dir: str | Path, config: PixieConfig, 
         if res.get("T_cam_from_obj") is not None:
             ests.append(PoseEstimate(r["scene_id"], r["im_id"], r["obj_id"], 0.0 if res["failed"] else float(res["score"]),
                                      np.asarray(res["T_cam_from_obj"]), float(r["time_s"])))
-    tmp_csv = write_results_csv(out / f".results.csv.{os.getpid()}.tmp", ests)
-    os.replace(tmp_csv, out / "results.csv")
+    write_results_csv(out / "results.csv", ests)  # atomic (pixie.paths.write_atomic)
     write_atomic(out / "results.jsonl", "".join(json.dumps(r) + "\n" for r in records))
     write_atomic(out / "index.html", _html(records, len(jobs), config))
     n_failed = sum(1 for r in records if r["result"].get("failed"))

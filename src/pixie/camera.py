@@ -6,6 +6,9 @@ so pixel (u, v) spans [u - 0.5, u + 0.5]. Poses are 4x4 ``T_cam_from_obj`` matri
 
 from __future__ import annotations
 
+import re
+import warnings
+
 import numpy as np
 
 from pixie.errors import CameraError
@@ -19,9 +22,11 @@ def make_K(fx: float, fy: float, cx: float, cy: float) -> np.ndarray:
 def parse_K(text: str) -> np.ndarray:
     """Parse ``"fx,fy,cx,cy"`` or nine comma-separated row-major values into K."""
     try:
-        vals = [float(v) for v in text.replace(" ", "").split(",") if v]
+        vals = [float(v) for v in re.split(r"[,\s]+", text.strip()) if v]
     except ValueError as exc:
         raise CameraError(f"cannot parse intrinsics {text!r}: expected 'fx,fy,cx,cy'") from exc
+    if not all(np.isfinite(vals)):
+        raise CameraError(f"intrinsics {text!r} have non-finite entries")
     if len(vals) == 4:
         return make_K(*vals)
     if len(vals) == 9:
@@ -44,7 +49,10 @@ def validate_K(K: np.ndarray, image_size: tuple[int, int] | None = None) -> np.n
         Wrong shape, non-finite entries, non-positive focal lengths, a bottom row other than
         (0, 0, 1), or a principal point outside the image.
     """
-    K = np.asarray(K, dtype=np.float64)
+    try:
+        K = np.asarray(K, dtype=np.float64)
+    except (TypeError, ValueError) as exc:
+        raise CameraError(f"K must be a 3x3 matrix of numbers, got {type(K).__name__}") from exc
     if K.shape != (3, 3):
         raise CameraError(f"K must be 3x3, got shape {K.shape}")
     if not np.all(np.isfinite(K)):
@@ -172,6 +180,58 @@ def scale_K(K: np.ndarray, sx: float, sy: float | None = None) -> np.ndarray:
     return K2
 
 
-def check_image_K(K: np.ndarray, image_size: tuple[int, int]) -> np.ndarray:
-    """:func:`validate_K` for a query image of (height, width)."""
-    return validate_K(K, image_size)
+# Fields of view a pinhole K can describe: outside them K is for another image size or in other units (mm).
+FOV_LIMITS_DEG = (0.1, 170.0)
+# Usual fields of view and pixel aspect: outside them K gets a warning.
+FOV_USUAL_DEG = (1.0, 140.0)
+ASPECT_USUAL = (0.8, 1.25)
+
+
+def fields_of_view_deg(K: np.ndarray, image_size: tuple[int, int]) -> tuple[float, float]:
+    """Horizontal and vertical field of view (degrees) of K over an image of (height, width)."""
+    h, w = image_size
+    return (float(np.degrees(2 * np.arctan2(w / 2.0, K[0, 0]))), float(np.degrees(2 * np.arctan2(h / 2.0, K[1, 1]))))
+
+
+def intrinsics_warnings(K: np.ndarray, image_size: tuple[int, int]) -> list[str]:
+    """Why a valid K looks unusual for an image of (height, width): field of view, pixel aspect, principal
+    point far from the centre. Empty when nothing is unusual."""
+    h, w = image_size
+    out = []
+    fov = fields_of_view_deg(K, image_size)
+    lo, hi = FOV_USUAL_DEG
+    if not all(lo <= f <= hi for f in fov):
+        out.append(f"K gives a {fov[0]:.1f} x {fov[1]:.1f} deg field of view over the {w}x{h} image "
+                   f"(usual: {lo:g}..{hi:g} deg); is K for this image size?")
+    aspect = K[0, 0] / K[1, 1]
+    if not ASPECT_USUAL[0] <= aspect <= ASPECT_USUAL[1]:
+        out.append(f"K has fx/fy = {aspect:.2f} (fx {K[0, 0]:g}, fy {K[1, 1]:g}); square pixels give 1")
+    off = max(abs(K[0, 2] - (w - 1) / 2) / w, abs(K[1, 2] - (h - 1) / 2) / h)
+    if off > 0.3:
+        out.append(f"K's principal point ({K[0, 2]:.1f}, {K[1, 2]:.1f}) is far from the centre of the {w}x{h} image")
+    return out
+
+
+def check_image_K(K: np.ndarray, image_size: tuple[int, int], warn: bool = True) -> np.ndarray:
+    """:func:`validate_K` for a query image of (height, width), plus a field of view a pinhole camera can have.
+
+    Unusual but possible intrinsics (:func:`intrinsics_warnings`) give a ``UserWarning`` when ``warn``.
+
+    Raises
+    ------
+    CameraError
+        As :func:`validate_K`, or a field of view outside ``FOV_LIMITS_DEG`` (a focal length of 4.2 px on a
+        640 px image: K in mm, or for another resolution).
+    """
+    K = validate_K(K, image_size)
+    h, w = image_size
+    fov = fields_of_view_deg(K, image_size)
+    lo, hi = FOV_LIMITS_DEG
+    if not all(lo <= f <= hi for f in fov):
+        raise CameraError(f"K (fx {K[0, 0]:g}, fy {K[1, 1]:g} px) gives a {fov[0]:.2f} x {fov[1]:.2f} deg field of "
+                          f"view over the {w}x{h} image, impossible for a pinhole camera ({lo:g}..{hi:g} deg): "
+                          "is the focal length in pixels and for this image size?")
+    if warn:
+        for msg in intrinsics_warnings(K, image_size):
+            warnings.warn(msg, UserWarning, stacklevel=2)
+    return K

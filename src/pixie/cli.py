@@ -1,9 +1,10 @@
 """Command line: ``pixie refs build|show``, ``pixie estimate`` (one photo or ``--batch``), ``pixie run``,
 ``pixie eval``, ``pixie weights``, ``pixie demo``, ``pixie --version``.
 
-Every command with a configuration starts from ``--preset`` (default ``default``), then ``--config FILE.yaml``,
-then ``--set section.key=value`` (repeatable) overrides of :class:`pixie.config.PixieConfig`, and takes
-``--device``. Errors pixie raises on purpose print one line and exit 2; Ctrl-C prints one line and exits 130.
+Config: ``--preset`` (default ``default``), then ``--config FILE.yaml``, then ``--set section.key=value``; and
+``--device``. Inputs and output paths are checked before any work; outputs go to exactly the name given, atomically
+(``--force`` to replace one). Exit codes: 0 done (``estimate``: pose ok); 1 pose flagged failed; 2 bad input (one
+``pixie: error: ...`` line); 3 an internal error (``-v``: traceback); 130 Ctrl-C (finished work kept); 143 SIGTERM.
 """
 
 from __future__ import annotations
@@ -11,7 +12,10 @@ from __future__ import annotations
 import argparse
 import json
 import logging
+import re
+import signal
 import sys
+import threading
 import time
 import warnings
 from pathlib import Path
@@ -20,22 +24,37 @@ import numpy as np
 
 from pixie._version import __version__
 from pixie.batch import folder_items, read_manifest, run_batch
-from pixie.camera import parse_K
+from pixie.camera import check_image_K, parse_K
 from pixie.cluster import set_threads
 from pixie.config import DEFAULT_PRESET, PixieConfig, preset_about, preset_names
 from pixie.demo import main as demo_main
-from pixie.errors import PixieError
+from pixie.encode import check_encodings
+from pixie.errors import DatasetError, PixieError, ReferenceSetError, UsageError
 from pixie.estimator import PoseEstimator
-from pixie.eval import add_eval_arguments, main_eval, run_eval
+from pixie.eval import BopDataset, add_eval_arguments, main_eval, run_eval
 from pixie.matching import available_matchers, backend_weights
 from pixie.mesh import load_mesh, units_note
-from pixie.outputs import write_atomic
-from pixie.query import load_image
+from pixie.paths import not_an_input, output_dir, output_file, write_atomic
+from pixie.query import bbox_from_mask, check_bbox, check_query_mask, load_image
 from pixie.references import build_reference_set, check_output_path, load_reference_set, save_reference_set
 from pixie.render import Renderer
 from pixie.runner import cached_reference_set, make_matcher, reference_cache_path, run_dataset
 from pixie.viz import contact_sheet, overlay_result, save_png
 from pixie.weights import cache_dir, sha256_file, weights_status
+
+
+def _numbers(text: str | None, option: str, count: int | None = None, kind: type = float) -> list:
+    """Comma-separated numbers of a command-line option, with an error naming the option."""
+    items = re.split(r"[,\s]+", (text or "").strip())
+    try:
+        vals = [kind(v) for v in items if v != ""]
+    except ValueError:
+        raise UsageError(f"{option} expects comma-separated {'whole ' if kind is int else ''}numbers, got {text!r}") from None
+    if not all(np.isfinite(vals)):
+        raise UsageError(f"{option} expects finite numbers, got {text!r}")
+    if not vals or (count is not None and len(vals) != count):
+        raise UsageError(f"{option} expects {count or 'some'} comma-separated numbers, got {text!r}")
+    return vals
 
 
 def _config(args: argparse.Namespace) -> PixieConfig:
@@ -69,10 +88,11 @@ def _add_parallel_args(p: argparse.ArgumentParser) -> None:
 
 
 def _load_mesh(path: str, units: str):
-    """load_mesh, announcing the units in one line and any size warning as one clean line."""
+    """load_mesh, announcing the units in one line and any size warning as one clean line. With ``--units auto``
+    (the user named no units) a size implausible even after auto-detection is an error, not a warning."""
     with warnings.catch_warnings(record=True) as caught:
         warnings.simplefilter("always")
-        mesh = load_mesh(path, units=units)
+        mesh = load_mesh(path, units=units, implausible="error" if units == "auto" else "warn")
     print(units_note(mesh))
     for w in caught:
         print(f"pixie: warning: {w.message}", file=sys.stderr)
@@ -84,17 +104,31 @@ def _add_units_arg(p: argparse.ArgumentParser, what: str = "the mesh file") -> N
                    help=f"units of {what} (default auto: metres if it is under 2 units across, else mm; announced)")
 
 
+_OPEN_BARS: list = []  # progress bars still drawing, closed before an interruption is reported
+_TERM: list = []  # SIGTERM received
+
+
+def _close_bars() -> None:
+    """Close the open progress bars, so that a message printed next stands on its own line."""
+    while _OPEN_BARS:
+        _OPEN_BARS.pop().close()
+
+
 def _tqdm_progress(total_label: str):
     from tqdm import tqdm
 
     bar = {"b": None}
 
     def cb(done: int, total: int) -> None:
+        if _TERM:
+            raise _Terminated()
         if bar["b"] is None:
             bar["b"] = tqdm(total=total, unit=total_label, dynamic_ncols=True)
+            _OPEN_BARS.append(bar["b"])
         bar["b"].update(done - bar["b"].n)
         if done >= total:
             bar["b"].close()
+            _OPEN_BARS.remove(bar["b"])
 
     return cb
 
@@ -102,19 +136,23 @@ def _tqdm_progress(total_label: str):
 # ------------------------------------------------------------------------------------------- refs
 def cmd_refs_build(args: argparse.Namespace) -> int:
     cfg = _config(args)
+    if args.workers < 1:
+        raise UsageError(f"--workers must be at least 1, got {args.workers}")
     if args.views is not None:
-        cfg.refs.n_fibonacci = args.views - (6 if cfg.refs.canonical else 0)
-        if cfg.refs.n_fibonacci < 0:
-            raise PixieError(f"--views {args.views} is fewer than the 6 canonical views")
+        n_fib = args.views - (6 if cfg.refs.canonical else 0)
+        if n_fib < 0 or args.views < 1:
+            raise UsageError(f"--views {args.views} is fewer than the 6 canonical views")
+        cfg.refs.n_fibonacci = n_fib
     for key in ("rotations", "size"):
         if getattr(args, key) is not None:
-            setattr(cfg.refs, key, getattr(args, key))
+            setattr(cfg.refs, key, getattr(args, key))  # validated (ConfigError naming refs.<key>)
     if args.encodings:
-        cfg.refs.encodings = args.encodings.split(",")
-    out = check_output_path(args.output)  # fail before minutes of rendering, not after
-    mesh = _load_mesh(args.mesh, args.units)
+        cfg.refs.encodings = args.encodings
+    check_encodings(cfg.refs.encodings)
     if args.matcher and args.matcher != "none":
         cfg.match.matcher = args.matcher
+    out = check_output_path(args.output, force=args.force)  # fail before minutes of rendering, not after
+    mesh = _load_mesh(args.mesh, args.units)
     matcher = None if args.matcher == "none" else make_matcher(cfg)
     n_views = cfg.refs.n_fibonacci + (6 if cfg.refs.canonical else 0)
     print(f"{mesh.name}: {len(mesh.vertices)} vertices; "
@@ -127,22 +165,38 @@ def cmd_refs_build(args: argparse.Namespace) -> int:
 
 
 def cmd_refs_show(args: argparse.Namespace) -> int:
+    out = output_file(args.output, force=args.force, what="contact sheet")
+    if not 8 <= args.tile <= 1024:
+        raise UsageError(f"--tile must be 8..1024 px, got {args.tile}")
     refs = load_reference_set(args.refs)
-    views = None if args.views is None else [int(v) for v in args.views.split(",")]
-    sheet = contact_sheet(refs, args.encodings.split(",") if args.encodings else None, views, tile=args.tile)
-    save_png(args.output, sheet)
+    views = None if args.views is None else _numbers(args.views, "--views", kind=int)
+    bad = [v for v in views or [] if not 0 <= v < refs.n_views]
+    if bad:
+        raise UsageError(f"--views {bad} not in the set, which has views 0..{refs.n_views - 1}")
+    encs = check_encodings(args.encodings.split(",")) if args.encodings else None
+    sheet = contact_sheet(refs, encs, views, tile=args.tile)
+    save_png(out, sheet)
     feats = ", ".join(f"{k} ({len(refs.features_for(*k.split('/', 1))[0])} images)" for k in refs.features) or "none"
     print(f"{args.refs}: {refs.mesh.name}, {refs.n_views} views x {refs.n_rolls} rolls at {refs.size} px; "
-          f"features: {feats}; sheet -> {args.output}")
+          f"features: {feats}; sheet -> {out}")
     return 0
 
 
 # --------------------------------------------------------------------------------------- estimate
-def _use_stored_matcher(cfg: PixieConfig, refs, overrides: list[str] | None) -> None:
-    """Match with the features the set was built with (unless --set match.matcher says otherwise)."""
+def _matcher_for(refs, cfg: PixieConfig, args: argparse.Namespace) -> None:
+    """Use the features stored in the set; refuse a matcher the user asked for that the set has none of."""
     stored = sorted({k.split("/")[0] for k in refs.features})
-    if stored and cfg.match.matcher not in stored and not any(o.startswith("match.matcher=") for o in overrides or []):
-        cfg.match.matcher = stored[0]
+    if not stored or cfg.match.matcher in stored:
+        return
+    preset = PixieConfig.from_preset(getattr(args, "preset", None) or DEFAULT_PRESET)
+    asked = cfg.match.matcher != preset.match.matcher or any(
+        o.split("=", 1)[0].strip() == "match.matcher" for o in args.set or [])
+    if asked:
+        raise ReferenceSetError(
+            f"{args.refs or 'the reference set'} holds features of {', '.join(stored)}, not of "
+            f"match.matcher={cfg.match.matcher}: rebuild it with `pixie refs build MESH --matcher "
+            f"{cfg.match.matcher}` or use match.matcher={stored[0]}")
+    cfg.match.matcher = stored[0]  # use the features the set was built with instead of re-extracting
 
 
 def _refs_for_estimate(args: argparse.Namespace, cfg: PixieConfig, cache: Path):
@@ -170,19 +224,26 @@ def cmd_estimate(args: argparse.Namespace) -> int:
     if args.threads:
         set_threads(args.threads)
     if args.K is None:
-        raise PixieError("--K fx,fy,cx,cy is needed (the camera intrinsics in pixels)")
+        raise UsageError("--K fx,fy,cx,cy is needed (the camera intrinsics in pixels)")
     if args.bbox is None and args.mask is None:
-        raise PixieError("no object box: pass --bbox x,y,w,h (pixels, w and h counting pixels) or --mask MASK.png "
+        raise UsageError("no object box: pass --bbox x,y,w,h (pixels, w and h counting pixels) or --mask MASK.png "
                          "(white = object); pixie does not guess where the object is. To use the whole image on "
                          "purpose, pass --bbox 0,0,WIDTH,HEIGHT")
+    out_json = output_file(args.output, force=args.force, what="result") if args.output else None
+    out_png = output_file(args.overlay, force=args.force, what="overlay") if args.overlay else None
+    not_an_input([out_json, out_png], [args.refs, args.mesh, args.image, args.mask])
+    K = parse_K(args.K)
+    bbox = None if args.bbox is None else _numbers(args.bbox, "--bbox", 4)
     refs, _ = _refs_for_estimate(args, cfg, cache_dir().parent / "refs")
     image = load_image(args.image)
-    K = parse_K(args.K)
-    bbox = None if args.bbox is None else [float(v) for v in args.bbox.split(",")]
+    K = check_image_K(K, image.shape[:2])
     mask = None
     if args.mask:
-        mask = load_image(args.mask)[..., 0] > 127
-    _use_stored_matcher(cfg, refs, args.set)
+        mask = check_query_mask(load_image(args.mask)[..., 0] > 127, image.shape[:2])
+    box = check_bbox(bbox if bbox is not None else bbox_from_mask(mask), image.shape[:2])
+    if mask is not None:
+        check_query_mask(mask, image.shape[:2], box)
+    _matcher_for(refs, cfg, args)
     est = PoseEstimator(refs, cfg)
     res = est.estimate(image, K, bbox=bbox, mask=mask)
     T = res.T_cam_from_obj
@@ -193,16 +254,16 @@ def cmd_estimate(args: argparse.Namespace) -> int:
         np.set_printoptions(precision=4, suppress=True)
         print("T_cam_from_obj (mm) =\n" + str(T))
     print("timings (s): " + ", ".join(f"{k} {v:.2f}" for k, v in res.timings.items()))
-    if args.output:
+    if out_json:
         record = res.to_dict()
         record["image"] = {"path": str(args.image), "sha256": sha256_file(args.image)}
         record["mask"] = None if not args.mask else {"path": str(args.mask), "sha256": sha256_file(args.mask)}
-        write_atomic(args.output, json.dumps(record, indent=1) + "\n")
-        print(f"result -> {args.output}")
-    if args.overlay:
+        write_atomic(out_json, json.dumps(record, indent=1) + "\n")
+        print(f"result -> {out_json}")
+    if out_png:
         label = f"{'FAILED ' if res.failed else ''}confidence {res.confidence:.2f}"
-        save_png(args.overlay, overlay_result(image, Renderer(refs.mesh), T, K, res.box_xyxy, label))
-        print(f"overlay -> {args.overlay}")
+        save_png(out_png, overlay_result(image, Renderer(refs.mesh), T, K, res.box_xyxy, label))
+        print(f"overlay -> {out_png}")
     return 1 if res.failed else 0
 
 
@@ -219,9 +280,9 @@ def _estimate_batch(args: argparse.Namespace) -> int:
         if args.K or args.bbox or args.masks:
             raise PixieError("a manifest carries K and bbox/mask per row; drop --K/--bbox/--masks")
         items = read_manifest(src)
-    out = Path(args.output)
+    out = output_dir(args.output, what="output folder")
     refs, refs_path = _refs_for_estimate(args, cfg, out / "refs")
-    _use_stored_matcher(cfg, refs, args.set)
+    _matcher_for(refs, cfg, args)
     del refs
     s = run_batch(items, out, cfg, refs_path, threads=args.threads or 1, use_ray=args.ray, address=args.address,
                   workers=args.workers, overlays=not args.no_overlays, max_items=args.max_items)
@@ -267,7 +328,21 @@ def cmd_weights(args: argparse.Namespace) -> int:
 # ------------------------------------------------------------------------------------------- run
 def cmd_run(args: argparse.Namespace) -> int:
     cfg = _config(args)
-    objects = None if not args.objects else [int(o) for o in args.objects.split(",")]
+    objects = None if not args.objects else _numbers(args.objects, "--objects", kind=int)
+    if args.max_targets is not None and args.max_targets < 1:
+        raise UsageError(f"--max-targets must be at least 1, got {args.max_targets}")
+    output_dir(args.output, what="output folder")
+    if args.refs_dir:
+        output_dir(args.refs_dir, what="reference-set folder")
+    ds = BopDataset(args.dataset)
+    known = sorted({t.obj_id for t in ds.targets()})
+    unknown = sorted(set(objects or []) - set(known))
+    if unknown:
+        raise UsageError(f"--objects {unknown} not among the dataset's target objects {known}")
+    for o in objects or known:  # every model is there before hours of work start
+        ds.model_path(o)
+    if not ds.split_dir.is_dir():
+        raise DatasetError(f"split folder not found: {ds.split_dir}")
     t0 = time.perf_counter()
     csv = run_dataset(args.dataset, args.output, cfg, objects=objects, max_targets=args.max_targets,
                       refs_dir=args.refs_dir, threads=args.threads or 1, use_ray=args.ray, address=args.address,
@@ -295,6 +370,7 @@ def build_parser() -> argparse.ArgumentParser:
     b.add_argument("--encodings", help="comma-separated encodings (default shade3_edges,depth,normal)")
     b.add_argument("--matcher", help="features to store (default: config match.matcher; 'none' for none)")
     b.add_argument("--workers", type=int, default=1, help="render processes")
+    b.add_argument("--force", action="store_true", help="replace an existing output file")
     _add_config_args(b)
     b.set_defaults(func=cmd_refs_build)
     s = refs.add_parser("show", help="contact sheet of a reference set's encodings")
@@ -303,6 +379,7 @@ def build_parser() -> argparse.ArgumentParser:
     s.add_argument("--encodings")
     s.add_argument("--views", help="comma-separated view indices (default all)")
     s.add_argument("--tile", type=int, default=128)
+    s.add_argument("--force", action="store_true", help="replace an existing output file")
     s.set_defaults(func=cmd_refs_show)
 
     e = sub.add_parser("estimate", help="estimate the pose of the object in one photo, or in a folder / manifest of photos")
@@ -322,6 +399,7 @@ def build_parser() -> argparse.ArgumentParser:
     e.add_argument("--no-overlays", action="store_true", help="--batch: skip the overlay pictures")
     e.add_argument("--max-items", type=int, help="--batch: stop after this many new images (resume later)")
     _add_parallel_args(e)
+    e.add_argument("--force", action="store_true", help="replace existing output files")
     _add_config_args(e)
     e.set_defaults(func=cmd_estimate)
 
@@ -352,6 +430,20 @@ def build_parser() -> argparse.ArgumentParser:
     return p
 
 
+def _show_warning(message, category, filename, lineno, file=None, line=None) -> None:
+    print(f"pixie: warning: {message}", file=sys.stderr)
+
+
+class _Terminated(BaseException):
+    """SIGTERM, turned into an exception so that temporary files are removed and workers stopped."""
+
+
+def _on_sigterm(signum, frame) -> None:
+    _TERM.append(signum)  # a progress tick raises it where Python would ignore it (fork hooks, e.g. logging's)
+    if frame is None or frame.f_code.co_name not in ("_acquireLock", "_releaseLock", "_at_fork_reinit"):
+        raise _Terminated()
+
+
 def main(argv: list[str] | None = None) -> int:
     argv = sys.argv[1:] if argv is None else list(argv)
     if argv[:1] == ["demo"]:  # the demo parses its own options
@@ -361,16 +453,45 @@ def main(argv: list[str] | None = None) -> int:
             print(f"pixie: error: {exc}", file=sys.stderr)
             return 2
     args = build_parser().parse_args(argv)
-    logging.basicConfig(level=logging.INFO if args.verbose else logging.WARNING, format="%(levelname)s %(name)s: %(message)s")
+    in_main = threading.current_thread() is threading.main_thread()
+    previous = signal.signal(signal.SIGTERM, _on_sigterm) if in_main else None
     try:
-        return int(args.func(args) or 0)
-    except PixieError as exc:
-        print(f"pixie: error: {exc}", file=sys.stderr)
-        return 2
-    except KeyboardInterrupt:
-        print("\npixie: interrupted; finished work is kept (batch and dataset runs resume when run again)",
-              file=sys.stderr)
-        return 130
+        return _main(args)
+    except _Terminated:
+        _close_bars()
+        print("pixie: terminated", file=sys.stderr)
+        return 143
+    finally:
+        if in_main and previous is not None:
+            signal.signal(signal.SIGTERM, previous)
+
+
+def _main(args: argparse.Namespace) -> int:
+    logging.basicConfig(level=logging.INFO if args.verbose else logging.WARNING, format="%(levelname)s %(name)s: %(message)s")
+    with warnings.catch_warnings():
+        warnings.simplefilter("default")
+        warnings.showwarning = _show_warning  # one line each, without the source line
+        try:
+            return int(args.func(args) or 0)
+        except PixieError as exc:
+            print(f"pixie: error: {exc}", file=sys.stderr)
+            return 2
+        except KeyboardInterrupt:
+            _close_bars()
+            print("pixie: interrupted", file=sys.stderr)
+            print("  finished work is kept; batch and dataset runs resume when run again", file=sys.stderr)
+            return 130
+        except OSError as exc:  # the file system refused something we did not foresee (disk full, permissions)
+            if args.verbose:
+                raise
+            print(f"pixie: error: {exc}", file=sys.stderr)
+            return 2
+        except Exception as exc:  # noqa: BLE001 - a bug: one line, the traceback with -v
+            if args.verbose:
+                raise
+            print(f"pixie: error: internal error {type(exc).__name__}: {exc} (a bug: please report it with the "
+                  "command; -v shows the traceback)", file=sys.stderr)
+            return 3
 
 
 if __name__ == "__main__":

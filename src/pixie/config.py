@@ -15,6 +15,7 @@ from __future__ import annotations
 import dataclasses
 import hashlib
 import json
+import math
 from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any
@@ -23,9 +24,118 @@ import yaml
 
 from pixie.errors import ConfigError
 
+# Allowed values, checked whenever a value is set (constructor, attribute assignment, YAML, --set).
+CHOICES: dict[str, tuple[str, ...]] = {
+    "refs.feature_rolls": ("all", "first"),
+    "match.in_plane": ("reference", "query"),
+    "pose.threshold_space": ("image", "crop"),
+    "pose.solver": ("poselib", "opencv"),
+    "pose.mode": ("per_view", "concat"),
+    "pose.scoring": ("inliers", "combined", "similarity", "combined_similarity", "excess", "combined_excess"),
+    "pose.candidate_ranking": ("excess", "count"),
+    "pose.views": ("all", "canonical"),
+}
+# (low, high, low_inclusive): numbers outside are refused; None bounds are open.
+RANGES: dict[str, tuple[float | None, float | None, bool]] = {
+    "refs.n_fibonacci": (0, 100_000, True),
+    "refs.rotations": (1, 360, True),
+    "refs.size": (16, 4096, True),
+    "refs.focal_factor": (0, 1000, False),
+    "refs.crop_pad": (1.0, 10.0, True),
+    "query.crop_pad": (1.0, 10.0, True),
+    "match.max_keypoints": (1, 100_000, True),
+    "match.window": (0, 10, False),
+    "pose.ransac_iterations": (1, 10_000_000, True),
+    "pose.reprojection_px": (0, 10_000, False),
+    "pose.confidence": (0, 1, False),
+    "pose.min_inliers": (4, None, True),  # PnP needs 4 points
+    "pose.top_k_views": (1, None, True),
+    "refine.view_selection_iters": (0, 100, True),
+    "refine.n_hypotheses": (1, None, True),
+    "refine.render_iters": (0, 100, True),
+    "refine.render_hypotheses": (0, None, True),
+    "refine.render_seeds": (0, None, True),
+    "refine.render_window": (0, 10, False),
+}
+
+
+def check_value(dotted: str, annotation: str, value: Any) -> Any:
+    """``value`` converted to the type ``annotation`` names and checked against CHOICES / RANGES.
+
+    Parameters
+    ----------
+    dotted : str
+        ``section.key``, named in the error.
+    annotation : str
+        The dataclass field's annotation (``'int'``, ``'float | None'``, ``'list[str]'`` ...).
+    value : any
+        A Python value (already parsed from YAML where it came from text).
+
+    Returns
+    -------
+    The value as the field's type: whole floats become ints, ints become floats, a text for a list
+    becomes its comma-separated items.
+
+    Raises
+    ------
+    ConfigError
+        Wrong type, a value outside its range or not among the allowed choices.
+    """
+    parts = [a.strip() for a in annotation.split("|")]
+    optional = "None" in parts
+    base = next(a for a in parts if a != "None")
+    if value is None:
+        if optional:
+            return None
+        raise ConfigError(f"{dotted} cannot be null (expects {base})")
+    if base == "bool":
+        if not isinstance(value, bool):
+            raise ConfigError(f"{dotted} expects true/false, got {value!r}")
+    elif base in ("int", "float"):
+        if isinstance(value, bool) or not isinstance(value, (int, float)):
+            raise ConfigError(f"{dotted} expects a number, got {value!r}")
+        if not math.isfinite(value):
+            raise ConfigError(f"{dotted} must be a finite number, got {value!r}")
+        if base == "int":
+            if value != int(value):
+                raise ConfigError(f"{dotted} expects a whole number, got {value!r}")
+            value = int(value)
+        else:
+            value = float(value)
+        lo, hi, lo_incl = RANGES.get(dotted, (None, None, True))
+        if (lo is not None and (value < lo or (value == lo and not lo_incl))) or (hi is not None and value > hi):
+            low = "" if lo is None else (f">= {lo}" if lo_incl else f"> {lo}")
+            high = "" if hi is None else f"<= {hi}"
+            raise ConfigError(f"{dotted} must be {' and '.join(x for x in (low, high) if x)}, got {value!r}")
+    elif base == "str":
+        if not isinstance(value, str):
+            raise ConfigError(f"{dotted} expects text, got {value!r}")
+        if dotted in CHOICES and value not in CHOICES[dotted]:
+            raise ConfigError(f"{dotted} must be one of {', '.join(CHOICES[dotted])}; got {value!r}")
+    elif base == "list[str]":
+        if isinstance(value, str):
+            value = [v.strip() for v in value.split(",") if v.strip()]
+        if not isinstance(value, (list, tuple)) or not all(isinstance(v, str) for v in value):
+            raise ConfigError(f"{dotted} expects a list of names, got {value!r}")
+        if not value:
+            raise ConfigError(f"{dotted} must not be empty")
+        value = list(value)
+    return value
+
+
+class _Section:
+    """Validates every assignment of a config section's field (:func:`check_value`)."""
+
+    def __setattr__(self, name: str, value: Any) -> None:
+        section = _SECTION_NAMES.get(type(self), type(self).__name__)
+        annotations = type(self).__annotations__
+        if name not in annotations:
+            raise ConfigError(f"unknown key {name!r} in section {section!r}; keys: {sorted(annotations)}")
+        object.__setattr__(self, name, check_value(f"{section}.{name}", annotations[name], value))
+
 
 @dataclass
-class RefsConfig:
+class RefsConfig(_Section):
     """Step 1: reference views rendered offline."""
 
     n_fibonacci: int = 115  # + 6 canonical box-aligned views = 121
@@ -41,7 +151,7 @@ class RefsConfig:
 
 
 @dataclass
-class QueryConfig:
+class QueryConfig(_Section):
     """Step 2: the query crop."""
 
     crop_pad: float = 1.2  # same meaning as refs.crop_pad, applied to the given bbox / mask box
@@ -49,7 +159,7 @@ class QueryConfig:
 
 
 @dataclass
-class MatchConfig:
+class MatchConfig(_Section):
     """Step 3: cross-modality matching."""
 
     matcher: str = "aliked-nn"
@@ -62,7 +172,7 @@ class MatchConfig:
 
 
 @dataclass
-class PoseConfig:
+class PoseConfig(_Section):
     """Step 4: lifting and PnP + RANSAC."""
 
     ransac_iterations: int = 1000
@@ -87,7 +197,7 @@ class PoseConfig:
 
 
 @dataclass
-class RefineConfig:
+class RefineConfig(_Section):
     """Step 5: iterative view selection (the paper's), optional extras."""
 
     view_selection_iters: int = 1
@@ -124,12 +234,14 @@ def _preset_path(name: str) -> Path:
 
 def _read_yaml(path: str | Path) -> dict[str, Any]:
     try:
-        data = yaml.safe_load(Path(path).read_text())
-    except (OSError, yaml.YAMLError) as exc:
-        raise ConfigError(f"cannot read config {path}: {exc}") from exc
+        data = yaml.safe_load(Path(path).read_text(encoding="utf-8"))
+    except (OSError, UnicodeDecodeError, yaml.YAMLError) as exc:
+        raise ConfigError(f"cannot read config {path}: {type(exc).__name__}: {exc}") from exc
     if data is not None and not isinstance(data, dict):
-        raise ConfigError(f"config {path} must be a mapping of sections")
+        raise ConfigError(f"config {path} must be a mapping of sections, got {type(data).__name__}")
     return data or {}
+_SECTION_NAMES = {RefsConfig: "refs", QueryConfig: "query", MatchConfig: "match", PoseConfig: "pose",
+                  RefineConfig: "refine"}
 
 
 @dataclass
@@ -153,12 +265,15 @@ class PixieConfig:
         return hashlib.sha256(json.dumps(self.to_dict(), sort_keys=True).encode()).hexdigest()[:16]
 
     def update(self, data: dict[str, Any] | None) -> "PixieConfig":
-        """Set every ``{section: {key: value}}`` of ``data`` (a top-level ``about`` string is ignored)."""
+        """Set every ``{section: {key: value}}`` of ``data`` (a top-level ``about`` string is ignored), each
+        value validated (:class:`ConfigError` naming ``section.key``)."""
+        if data is not None and not isinstance(data, dict):
+            raise ConfigError(f"a config must be a mapping of sections, got {type(data).__name__}")
         for section, values in (data or {}).items():
-            if section == "about":
+            if section == "about" or values is None:
                 continue
             if not isinstance(values, dict):
-                raise ConfigError(f"config section {section!r} must be a mapping of keys, got {values!r}")
+                raise ConfigError(f"config section {section!r} must be a mapping of key: value, got {values!r}")
             for key, value in values.items():
                 self.set(f"{section}.{key}", value)
         return self
@@ -169,18 +284,22 @@ class PixieConfig:
 
     @classmethod
     def from_yaml(cls, path: str | Path) -> "PixieConfig":
-        return cls.from_dict(_read_yaml(path))
+        return cls().update_from_yaml(path)
 
     @classmethod
     def from_preset(cls, name: str = DEFAULT_PRESET) -> "PixieConfig":
         """The dataclass defaults with the preset ``name`` (``fast``, ``default``, ``paper``) applied."""
-        cfg = cls.from_dict(_read_yaml(_preset_path(name)))
+        cfg = cls().update_from_yaml(_preset_path(name))
         cfg.preset = name
         return cfg
 
     def update_from_yaml(self, path: str | Path) -> "PixieConfig":
-        """Apply a YAML file of sections on top of this config (e.g. a user file over a preset)."""
-        return self.update(_read_yaml(path))
+        """Apply a YAML file of sections on top of this config (e.g. a user file over a preset); errors name the file."""
+        data = _read_yaml(path)
+        try:
+            return self.update(data)
+        except ConfigError as exc:
+            raise ConfigError(f"{path}: {exc}") from exc
 
     def set(self, dotted: str, value: Any) -> None:
         """Set ``section.key`` to ``value`` (strings are parsed as YAML scalars/lists)."""
@@ -193,16 +312,12 @@ class PixieConfig:
         names = {f.name: f for f in dataclasses.fields(sec)}
         if key not in names:
             raise ConfigError(f"unknown key {key!r} in section {section!r}; keys: {sorted(names)}")
-        if isinstance(value, str):
-            value = yaml.safe_load(value) if value != "" else value
-        default = getattr(sec, key)
-        if isinstance(default, bool) and not isinstance(value, bool):
-            raise ConfigError(f"{dotted} expects true/false, got {value!r}")
-        if isinstance(default, (int, float)) and not isinstance(default, bool) and value is not None:
-            if not isinstance(value, (int, float)) or isinstance(value, bool):
-                raise ConfigError(f"{dotted} expects a number, got {value!r}")
-            value = type(default)(value) if not (isinstance(default, int) and isinstance(value, float) and value != int(value)) else value
-        setattr(sec, key, value)
+        if isinstance(value, str) and value != "":
+            try:
+                value = yaml.safe_load(value)
+            except yaml.YAMLError as exc:
+                raise ConfigError(f"{dotted}: cannot parse {value!r} as a YAML value") from exc
+        setattr(sec, key, value)  # validated by the section (_Section.__setattr__)
 
     def apply_overrides(self, overrides: list[str] | None) -> "PixieConfig":
         for item in overrides or []:

@@ -31,3 +31,11 @@ class DatasetError(PixieError):
 
 class ConfigError(PixieError):
     """A configuration key or value is unknown or invalid."""
+
+
+class OutputError(PixieError):
+    """An output path cannot be used: it is a folder, not a regular file, not writable, or already exists."""
+
+
+class UsageError(PixieError):
+    """A command-line argument is malformed (not a number, wrong count, out of range)."""

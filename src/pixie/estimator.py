@@ -22,13 +22,14 @@ can serve queries from several threads.
 
 from __future__ import annotations
 
+import copy
 import logging
 import time
 from dataclasses import dataclass
 
 import numpy as np
 
-from pixie.camera import check_image_K, optical_axis_in_object, rotation_angle_deg
+from pixie.camera import check_image_K, intrinsics_warnings, optical_axis_in_object, rotation_angle_deg
 from pixie.config import PixieConfig
 from pixie.errors import ConfigError, ImageError
 from pixie.features import Features
@@ -45,7 +46,8 @@ from pixie.pose import (
     projected_box,
     solve_pnp_ransac,
 )
-from pixie.query import QueryCrop, bbox_from_mask, check_bbox, square_crop
+from pixie.plausibility import pose_contradictions
+from pixie.query import QueryCrop, bbox_from_mask, check_bbox, check_query_mask, square_crop
 from pixie.references import ReferenceSet, add_features
 from pixie.refine import aligned_correspondences, render_in_crop
 from pixie.render import Renderer
@@ -53,6 +55,8 @@ from pixie.results import NO_BOX_MESSAGE, Hypothesis, PoseResult, set_confidence
 from pixie.views import roll_angles
 
 log = logging.getLogger(__name__)
+
+MIN_CROP_CONTRAST = 2.0  # grey-level std of the query crop below which nothing in it can be matched
 
 # (view, roll) -> (pts2d (N, 2) photo px, pts3d (N, 3) object mm, similarities (N,)), float64
 Correspondences = dict[tuple[int, int], tuple[np.ndarray, np.ndarray, np.ndarray]]
@@ -104,8 +108,14 @@ class PoseEstimator:
     """
 
     def __init__(self, refs: ReferenceSet, config: PixieConfig | None = None, matcher: Matcher | None = None):
+        if config is not None and not isinstance(config, PixieConfig):
+            raise ConfigError(f"config must be a PixieConfig, got {type(config).__name__}")
+        if not isinstance(refs, ReferenceSet):
+            raise ConfigError(f"refs must be a ReferenceSet (pixie.load_reference_set), got {type(refs).__name__}")
         self.refs = refs
-        self.cfg = config or PixieConfig()
+        # a private copy: the caller's config is never rewritten (e.g. in_plane below), and later edits of it
+        # cannot change an estimator that is serving queries
+        self.cfg = copy.deepcopy(config) if config is not None else PixieConfig()
         m = self.cfg.match
         if self.cfg.pose.threshold_space not in ("image", "crop"):
             raise ConfigError(f"pose.threshold_space must be 'image' or 'crop', got {self.cfg.pose.threshold_space!r}")
@@ -168,7 +178,7 @@ class PoseEstimator:
             hyps = self.render_refine(q, hyps)
             timings["render_refine"] = time.perf_counter() - t
         timings["total"] = time.perf_counter() - t_all
-        return self.record_inputs(self.result(hyps, timings), q)
+        return self.record_inputs(self.result(hyps, timings, q), q)
 
     # ------------------------------------------------------------------------------------------ stages
     def prepare(self, image: np.ndarray, K: np.ndarray, bbox=None, mask: np.ndarray | None = None) -> Query:
@@ -184,9 +194,13 @@ class PoseEstimator:
         if bbox is None and mask is None:
             raise ImageError(NO_BOX_MESSAGE)
         box_source = "bbox" if bbox is not None else "mask"
+        if mask is not None:
+            mask = check_query_mask(mask, image.shape[:2])
         if bbox is None:
             bbox = bbox_from_mask(mask)
         box = check_bbox(bbox, image.shape[:2])
+        if mask is not None:
+            check_query_mask(mask, image.shape[:2], box)
         use_mask = mask if (mask is not None and self.cfg.query.mask_keypoints) else None
         crops = self.crops(image, box, use_mask)
         feats = [self.matcher.extract(c.image, mask=c.mask) for c in crops]
@@ -405,16 +419,34 @@ class PoseEstimator:
         res.device = str(getattr(self.matcher, "device", "cpu"))
         return res
 
-    def result(self, hyps: list[Hypothesis], timings: dict[str, float] | None = None) -> PoseResult:
-        """The best hypothesis as a :class:`PoseResult` with its confidence and the distinct runners-up."""
+    def result(self, hyps: list[Hypothesis], timings: dict[str, float] | None = None,
+               q: Query | None = None) -> PoseResult:
+        """The best hypothesis as a :class:`PoseResult` with its confidence and the distinct runners-up.
+
+        With the query ``q``, a pose that contradicts its box or K (:func:`pixie.plausibility.pose_contradictions`:
+        behind the camera, far too small or large for the box, beside it) is flagged failed with the reason,
+        and intrinsics unusual for the image size are listed in ``warnings``.
+        """
         timings = {} if timings is None else timings
+        warns = intrinsics_warnings(q.K, q.image.shape[:2]) if q is not None else []
         if not hyps:
-            return PoseResult(None, 0.0, 0, True, "no pose: too few 2D-3D matches survived PnP+RANSAC", timings=timings)
+            return PoseResult(None, 0.0, 0, True, "no pose: too few 2D-3D matches survived PnP+RANSAC", timings=timings,
+                              warnings=warns)
         best = hyps[0]
         distinct = self.distinct(hyps, self.cfg.refine.n_hypotheses)
         set_confidences(distinct)
         confidence = distinct[0].confidence
         failed = best.n_inliers < max(self.cfg.pose.min_inliers, 1) or best.score <= 0
         msg = "ok" if not failed else "low support"
+        if q is not None:
+            mesh = self.refs.mesh
+            reasons = pose_contradictions(best.T_cam_from_obj, q.K, q.box, self.box_points, mesh.center,
+                                          mesh.bounding_radius)
+            if reasons:
+                failed, msg = True, "implausible: " + "; ".join(reasons)
+            contrast = float(np.std(q.crops[0].image))
+            if contrast < MIN_CROP_CONTRAST:
+                failed, msg = True, (f"the object crop has no contrast (grey-level std {contrast:.1f}): a blank or "
+                                     "saturated image, or a box on a featureless area")
         return PoseResult(best.T_cam_from_obj, best.score, best.n_inliers, failed, msg, best.view, best.roll,
-                          confidence, distinct, timings)
+                          confidence, distinct, timings, warnings=warns)

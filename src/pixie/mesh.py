@@ -8,6 +8,7 @@ from __future__ import annotations
 
 import hashlib
 import logging
+import os
 import warnings
 from dataclasses import dataclass, field
 from pathlib import Path
@@ -148,7 +149,7 @@ def from_arrays(vertices: np.ndarray, faces: np.ndarray, name: str = "mesh", uni
     return _finish(v, f, name, digest, units)
 
 
-def load_mesh(path: str | Path, units: str = "auto") -> Mesh:
+def load_mesh(path: str | Path, units: str = "auto", implausible: str = "warn") -> Mesh:
     """Load a triangle mesh and return it in millimetres.
 
     Parameters
@@ -158,6 +159,9 @@ def load_mesh(path: str | Path, units: str = "auto") -> Mesh:
     units : {'mm', 'cm', 'm', 'auto'}
         Units the file is written in. ``'auto'`` (default) takes metres when the bounding-box diagonal
         is below 2 (a part under 2 mm is unlikely), else millimetres; :func:`units_note` says what it chose.
+    implausible : {'warn', 'error'}
+        What a size outside 2 mm .. 5 m in the (declared or chosen) units does: a ``UserWarning`` or a
+        :class:`MeshError` (the CLI's choice when the user did not name the units).
 
     Raises
     ------
@@ -167,6 +171,10 @@ def load_mesh(path: str | Path, units: str = "auto") -> Mesh:
     """
     import trimesh
 
+    if not isinstance(path, (str, os.PathLike)):
+        raise MeshError(f"mesh path must be a str or Path, got {type(path).__name__}")
+    if implausible not in ("warn", "error"):
+        raise MeshError(f"implausible must be 'warn' or 'error', got {implausible!r}")
     path = Path(path)
     if not path.is_file():
         raise MeshError(f"mesh file not found: {path}")
@@ -183,6 +191,11 @@ def load_mesh(path: str | Path, units: str = "auto") -> Mesh:
         raise MeshError(f"{path} holds no triangle mesh (got {type(loaded).__name__})")
     if len(loaded.faces) == 0:
         raise MeshError(_no_triangles_message(path, len(loaded.vertices)))
+    faces = np.asarray(loaded.faces)
+    if faces.min() < 0 or faces.max() >= len(loaded.vertices):  # checked before trimesh indexes with them
+        bad = int(((faces < 0) | (faces >= len(loaded.vertices))).any(axis=1).sum())
+        raise MeshError(f"mesh {path}: {bad} face(s) use vertex indices outside its {len(loaded.vertices)} vertices "
+                        f"(indices {int(faces.min())}..{int(faces.max())}); the file is corrupt")
     # STL (and some OBJ/GLB exports) repeat every vertex per face: weld equal positions so that
     # smooth normals and adjacency do not depend on the file format.
     if len(loaded.vertices) and np.all(np.isfinite(loaded.vertices)):  # NaNs are reported below
@@ -193,6 +206,7 @@ def load_mesh(path: str | Path, units: str = "auto") -> Mesh:
         path.stem,
         hashlib.sha256(data).hexdigest(),
         units,
+        implausible,
     )
 
 
@@ -227,7 +241,7 @@ def _count_points(path: Path) -> int:
     return int(sum(len(getattr(g, "vertices", ())) for g in parts))
 
 
-def _finish(v: np.ndarray, f: np.ndarray, name: str, digest: str, units: str) -> Mesh:
+def _finish(v: np.ndarray, f: np.ndarray, name: str, digest: str, units: str, implausible: str = "warn") -> Mesh:
     if units not in (*UNIT_SCALE, "auto"):
         raise MeshError(f"unknown units {units!r}; use one of mm, cm, m, auto")
     if v.ndim != 2 or v.shape[1] != 3 or len(v) == 0:
@@ -253,12 +267,11 @@ def _finish(v: np.ndarray, f: np.ndarray, name: str, digest: str, units: str) ->
     diag_mm = diag * UNIT_SCALE[units]
     if not lo <= diag_mm <= hi:
         hint = "metres? try --units m" if diag_mm < lo else "already in mm? try --units mm"
-        warnings.warn(
-            f"mesh {name!r} is {diag_mm:.4g} mm across in the declared units ({units}); "
-            f"this is implausible for a part ({hint})",
-            UserWarning,
-            stacklevel=3,
-        )
+        msg = (f"mesh {name!r} is {diag_mm:.4g} mm across in the declared units ({units}); "
+               f"this is implausible for a part ({hint})")
+        if implausible == "error":
+            raise MeshError(msg + "; name the file's units with --units to go on")
+        warnings.warn(msg, UserWarning, stacklevel=3)
     normals = _vertex_normals(v, f, area)
     return Mesh(vertices=v, faces=f, vertex_normals=normals, name=name, source_hash=digest, file_units=units,
                 units_auto=auto)

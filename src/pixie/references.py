@@ -13,7 +13,10 @@ hash and the build config; a stale, foreign or corrupt file raises :class:`Refer
 
 from __future__ import annotations
 
+import ctypes
 import json
+import os
+import signal
 import time
 import zipfile
 import zlib
@@ -25,13 +28,13 @@ import numpy as np
 
 from pixie._version import __version__
 from pixie.camera import backproject, backproject_depth, invert_T, transform_points
-from pixie.config import RefsConfig
+from pixie.config import PixieConfig, RefsConfig
 from pixie.encode import check_encodings, encode
-from pixie.errors import ReferenceSetError
+from pixie.errors import OutputError, PixieError, ReferenceSetError
 from pixie.features import Features, pack_features, unpack_features
 from pixie.geometry import nearest_pixel
 from pixie.mesh import Mesh, from_arrays
-from pixie.outputs import check_output, write_with
+from pixie.paths import output_file, write_atomic
 from pixie.render import Renderer
 from pixie.views import camera_distance, roll, roll_angles, square_crop_K, start_K, view_poses
 
@@ -157,7 +160,7 @@ def build_reference_set(
     Parameters
     ----------
     mesh : Mesh
-    config : RefsConfig
+    config : RefsConfig (or a PixieConfig, whose ``refs`` section is used)
     matcher : pixie.matching Matcher, optional
         When given, features of every encoded image (all rolls) are extracted and stored.
     progress : callable(done, total), optional
@@ -166,7 +169,13 @@ def build_reference_set(
         Processes that render and encode in parallel (views are independent); features are
         extracted in this process while the workers render the next views.
     """
-    cfg = config or RefsConfig()
+    if not isinstance(mesh, Mesh):
+        raise ReferenceSetError(f"build_reference_set needs a pixie Mesh (pixie.load_mesh), got {type(mesh).__name__}")
+    cfg = config.refs if isinstance(config, PixieConfig) else (config or RefsConfig())
+    if not isinstance(cfg, RefsConfig):
+        raise ReferenceSetError(f"config must be a RefsConfig or PixieConfig, got {type(config).__name__}")
+    if isinstance(workers, bool) or not isinstance(workers, int):
+        raise ReferenceSetError(f"workers must be a whole number, got {workers!r}")
     encs = check_encodings(cfg.encodings)
     t0 = time.perf_counter()
     S = int(cfg.size)
@@ -274,7 +283,19 @@ def _render_view(mesh: Mesh, cfg: RefsConfig, T_base: np.ndarray, K0: np.ndarray
     return out
 
 
-def _worker_init(mesh: Mesh, cfg: RefsConfig, K0: np.ndarray, n_render: int | None) -> None:
+def _die_with_parent(parent_pid: int) -> None:
+    """Make this worker process die with its parent (Linux: PR_SET_PDEATHSIG) and leave Ctrl-C to the parent."""
+    signal.signal(signal.SIGINT, signal.SIG_IGN)  # the parent handles Ctrl-C and stops the pool
+    try:
+        ctypes.CDLL(None, use_errno=True).prctl(1, signal.SIGKILL)  # 1 = PR_SET_PDEATHSIG
+    except (OSError, AttributeError):  # not Linux: workers end when the pool's pipe closes
+        pass
+    if os.getppid() != parent_pid:  # the parent died before the line above
+        os._exit(1)
+
+
+def _worker_init(mesh: Mesh, cfg: RefsConfig, K0: np.ndarray, n_render: int | None, parent_pid: int) -> None:
+    _die_with_parent(parent_pid)
     _WORKER_STATE.update(mesh=mesh, cfg=cfg, K0=K0, n_render=n_render,
                          renderer=Renderer(mesh, smooth_normals=cfg.smooth_normals))
 
@@ -296,9 +317,12 @@ def _iter_rendered_views(mesh: Mesh, cfg: RefsConfig, base: np.ndarray, K0: np.n
     from concurrent.futures import ProcessPoolExecutor
 
     ctx = mp.get_context("fork")
-    init_args = (mesh, cfg, K0, n_render)
-    with ProcessPoolExecutor(workers, mp_context=ctx, initializer=_worker_init, initargs=init_args) as ex:
+    init_args = (mesh, cfg, K0, n_render, os.getpid())
+    ex = ProcessPoolExecutor(workers, mp_context=ctx, initializer=_worker_init, initargs=init_args)
+    try:
         yield from ex.map(_worker_render, list(base), chunksize=1)
+    finally:  # on Ctrl-C or an error: drop the queued views instead of rendering them all first
+        ex.shutdown(wait=True, cancel_futures=True)
 
 
 def keypoint_xyz_from_depth(depth: np.ndarray, K: np.ndarray, T_cam_from_obj: np.ndarray,
@@ -340,11 +364,13 @@ def add_features(refs: ReferenceSet, matcher, encodings: list[str] | None = None
 # ----------------------------------------------------------------------------------------- I/O
 
 
-def check_output_path(path: str | Path) -> Path:
+def check_output_path(path: str | Path, force: bool = True) -> Path:
     """The path a set will be written to, exactly as given (no suffix added); its folder is created and must
-    be writable (see :func:`pixie.outputs.check_output`)."""
-
-    return check_output(path, ReferenceSetError)
+    be writable; an existing file is refused unless ``force`` (:func:`pixie.paths.output_file`)."""
+    try:
+        return output_file(path, force=force, what="reference set")
+    except OutputError as exc:
+        raise ReferenceSetError(str(exc)) from exc
 
 
 def save_reference_set(refs: ReferenceSet, path: str | Path) -> Path:
@@ -373,13 +399,14 @@ def save_reference_set(refs: ReferenceSet, path: str | Path) -> Path:
     for key, packed in refs.features.items():
         for k, v in packed.items():
             arrays[f"feat/{key}/{k}"] = v
-
-    # a file object: numpy would otherwise append '.npz' to the name
-    return write_with(path, lambda fh: np.savez_compressed(fh, **arrays), ReferenceSetError)
+    # atomic (a killed write leaves no partial file) and 0644; a file object, else numpy appends '.npz'
+    return write_atomic(path, lambda fh: np.savez_compressed(fh, **arrays))
 
 
 def load_reference_set(path: str | Path, mesh: Mesh | None = None) -> ReferenceSet:
     """Read a reference set; with ``mesh`` given, refuse a set built from another mesh file."""
+    if not isinstance(path, (str, os.PathLike)):
+        raise ReferenceSetError(f"reference set path must be a str or Path, got {type(path).__name__}")
     path = Path(path)
     if not path.is_file():
         raise ReferenceSetError(f"reference set not found: {path} (build it with `pixie refs build MESH -o {path}`)")
@@ -394,6 +421,8 @@ def load_reference_set(path: str | Path, mesh: Mesh | None = None) -> ReferenceS
         meta = json.loads(data["meta"].tobytes().decode())
     except ValueError as exc:
         raise ReferenceSetError(f"{path}: unreadable metadata") from exc
+    if not isinstance(meta, dict):
+        raise ReferenceSetError(f"{path}: unreadable metadata")
     if meta.get("format_version") != FORMAT_VERSION:
         raise ReferenceSetError(
             f"{path} has format version {meta.get('format_version')}, this pixie reads {FORMAT_VERSION}: rebuild it"
@@ -418,6 +447,8 @@ def load_reference_set(path: str | Path, mesh: Mesh | None = None) -> ReferenceS
         )
     except (KeyError, TypeError) as exc:
         raise ReferenceSetError(f"{path} is missing data ({exc}): rebuild it") from exc
+    except PixieError as exc:  # an invalid stored config or mesh
+        raise ReferenceSetError(f"{path} holds invalid data ({exc}): rebuild it") from exc
 
 
 def _quantise_depth(depth: np.ndarray) -> dict[str, np.ndarray]:

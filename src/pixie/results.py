@@ -73,6 +73,7 @@ class PoseResult:
     preset: str | None = None
     config_digest: str | None = None
     device: str | None = None
+    warnings: list[str] = field(default_factory=list)  # unusual but accepted inputs (intrinsics for the image size)
 
     def to_dict(self) -> dict:
         """Everything as JSON-able data (poses as nested lists, mm)."""
@@ -95,6 +96,7 @@ class PoseResult:
             "mesh_sha256": self.mesh_sha256,
             "preset": self.preset, "config_digest": self.config_digest, "device": self.device,
             "timings": self.timings,
+            "warnings": self.warnings,
             "hypotheses": [
                 {"T_cam_from_obj": h.T_cam_from_obj.tolist(), "score": h.score, "confidence": h.confidence,
                  "n_inliers": h.n_inliers, "view": h.view, "roll": h.roll, "source": h.source} for h in self.hypotheses

@@ -5,10 +5,15 @@ The building blocks are shared by ``pixie run``, the demo and the benchmark scri
 * :func:`make_matcher` -- the matcher of a config (one place: :func:`pixie.matching.matcher_from_config`);
 * :func:`cached_reference_set` -- load-or-build a reference set in a cache folder, safe for several processes;
 * :class:`Journal` -- an append-only JSON-lines record of finished work, so interrupted loops resume.
+
+``pixie run`` reuses a cached per-target result only when it was made by the same code (:func:`code_version`),
+config, dataset and object model (the reference set is a function of these: :func:`run_fingerprint`); a line
+cut by a crash or otherwise corrupt is reported and its target runs again.
 """
 
 from __future__ import annotations
 
+import functools
 import hashlib
 import json
 import logging
@@ -19,6 +24,7 @@ from typing import Callable, Hashable
 
 import numpy as np
 
+from pixie._version import __version__
 from pixie.cluster import WorkerSpec, ray_map, set_threads
 from pixie.config import PixieConfig
 from pixie.errors import DatasetError, PixieError, ReferenceSetError
@@ -26,6 +32,7 @@ from pixie.estimator import PoseEstimator
 from pixie.eval.datasets import BopDataset, PoseEstimate, Target, write_results_csv
 from pixie.matching import Matcher, matcher_from_config
 from pixie.mesh import Mesh, load_mesh
+from pixie.paths import output_dir, write_atomic
 from pixie.references import ReferenceSet, build_reference_set, load_reference_set, save_reference_set
 
 log = logging.getLogger(__name__)
@@ -108,15 +115,20 @@ class Journal:
         self.key = key
         self.records: dict[Hashable, dict] = {}
         self._cut = False  # the file ends inside a line (a killed write): the next record starts a new line
+        self.bad_lines: list[int] = []  # 1-based numbers of lines that were cut or corrupt (their work reruns)
         if self.path.is_file():
-            text = self.path.read_text()
+            text = self.path.read_bytes().decode("utf-8", errors="replace")
             self._cut = bool(text) and not text.endswith("\n")
-            for line in text.splitlines():
+            for n, line in enumerate(text.splitlines(), 1):
+                if not line.strip():
+                    continue
                 try:
                     rec = json.loads(line)
+                    if not isinstance(rec, dict):
+                        raise TypeError("not a record")
                     self.records[key(rec)] = rec
-                except (ValueError, KeyError, TypeError):  # a line cut by a kill: run that work again
-                    continue
+                except (ValueError, KeyError, TypeError, IndexError):  # a line cut by a kill: run that work again
+                    self.bad_lines.append(n)
 
     def __contains__(self, key: Hashable) -> bool:
         return key in self.records
@@ -133,6 +145,7 @@ class Journal:
         with open(self.path, "a") as fh:
             fh.write(("\n" if self._cut else "") + json.dumps(record) + "\n")
             fh.flush()
+            os.fsync(fh.fileno())
         self._cut = False
         self.records[self.key(record)] = record
         return record
@@ -154,24 +167,33 @@ def run_dataset(dataset_root: str | Path, out_dir: str | Path, config: PixieConf
     """
     cfg = config or PixieConfig()
     ds = BopDataset(dataset_root)
-    out = Path(out_dir)
-    out.mkdir(parents=True, exist_ok=True)
+    out = output_dir(out_dir)
     refs_dir = Path(refs_dir) if refs_dir else out / "refs"
     targets = [t for t in ds.targets() if objects is None or t.obj_id in objects]
     if max_targets is not None and len(targets) > max_targets:
         targets = [targets[i] for i in np.linspace(0, len(targets) - 1, max_targets).round().astype(int)]
     journal = Journal(out / "per_target.jsonl", key=lambda rec: tuple(rec["key"]))
-    todo = [t for t in targets if _tkey(t) not in journal]
+    prints = {o: run_fingerprint(cfg, ds, o) for o in sorted({t.obj_id for t in targets})}
+    cached = {_tkey(t) for t in targets if _valid_record(journal.get(_tkey(t)), prints[t.obj_id])}
+    stale = sum(_tkey(t) in journal and _tkey(t) not in cached for t in targets)
+    todo = [t for t in targets if _tkey(t) not in cached]
     where = f" (Ray{' at ' + address if address else ''})" if use_ray else ""
-    echo(f"{len(targets)} targets, {len(targets) - len(todo)} cached, {len(todo)} to run -> {out}{where}")
-    (out / "config.json").write_text(json.dumps(cfg.to_dict(), indent=1))
+    echo(f"{len(targets)} targets, {len(cached)} cached, {len(todo)} to run -> {out}{where}")
+    if journal.bad_lines:
+        echo(f"warning: {journal.path}: {len(journal.bad_lines)} line(s) cut or corrupt (line "
+             f"{', '.join(map(str, journal.bad_lines[:10]))}{' ...' if len(journal.bad_lines) > 10 else ''}); "
+             "their targets run again")
+    if stale:
+        echo(f"{stale} earlier result(s) in {journal.path.name} were made with another config, code version, dataset "
+             "or model: they run again")
+    write_atomic(out / "config.json", json.dumps(cfg.to_dict(), indent=1))
     if todo:
         before = set_threads(threads or 1) if (threads or use_ray) else None
         try:
             if use_ray:
-                _run_ray(ds, cfg, todo, refs_dir, journal, echo, show_progress, threads or 1, address, workers)
+                _run_ray(ds, cfg, todo, refs_dir, journal, echo, show_progress, threads or 1, address, workers, prints)
             else:
-                _run_serial(ds, cfg, todo, refs_dir, journal, echo, show_progress)
+                _run_serial(ds, cfg, todo, refs_dir, journal, echo, show_progress, prints)
         finally:
             if before is not None:
                 set_threads(before)
@@ -182,7 +204,7 @@ def run_dataset(dataset_root: str | Path, out_dir: str | Path, config: PixieConf
 
 
 def _run_serial(ds: BopDataset, cfg: PixieConfig, todo: list[Target], refs_dir: Path, journal: Journal,
-                echo: Callable[[str], None], show_progress: bool) -> None:
+                echo: Callable[[str], None], show_progress: bool, prints: dict[int, str]) -> None:
     bar = _progress(len(todo), show_progress)
     matcher = make_matcher(cfg)
     for obj_id in sorted({t.obj_id for t in todo}):
@@ -192,14 +214,14 @@ def _run_serial(ds: BopDataset, cfg: PixieConfig, todo: list[Target], refs_dir: 
         echo(f"obj {obj_id}: reference set ready in {time.perf_counter() - t0:.1f} s")
         est = PoseEstimator(refs, cfg, matcher=matcher)
         for t in (t for t in todo if t.obj_id == obj_id):
-            journal.append(_run_target(ds, est, t))
+            journal.append(dict(_run_target(ds, est, t), run=prints[obj_id]))
             bar.update(1)
     bar.close()
 
 
 def _run_ray(ds: BopDataset, cfg: PixieConfig, todo: list[Target], refs_dir: Path, journal: Journal,
              echo: Callable[[str], None], show_progress: bool, threads: int, address: str | None,
-             workers: int | None) -> None:
+             workers: int | None, prints: dict[int, str]) -> None:
     """The targets on Ray workers: reference sets built here once (at ``threads``, like a serial run), workers
     load them from ``refs_dir``; records come back here and go to the journal."""
     matcher = make_matcher(cfg)
@@ -216,7 +238,7 @@ def _run_ray(ds: BopDataset, cfg: PixieConfig, todo: list[Target], refs_dir: Pat
                                                  "refs": refs_paths}, threads)
 
     def on_result(_: int, rec: dict) -> None:
-        journal.append(rec)
+        journal.append(dict(rec, run=prints[rec["key"][2]]))
         bar.update(1)
 
     try:
@@ -266,6 +288,39 @@ def _run_target(ds: BopDataset, est, t: Target) -> dict:
         rows.append({"T": None if T is None else T.tolist(), "score": score, "failed": failed,
                      "time": time.perf_counter() - t0, "timings": timings})
     return {"key": list(_tkey(t)), "estimates": rows}
+
+
+@functools.lru_cache(maxsize=1)
+def code_version() -> str:
+    """pixie's version plus a hash of its source files: any code change makes earlier results stale."""
+    root = Path(__file__).resolve().parent
+    h = hashlib.sha256(__version__.encode())
+    for p in sorted(root.rglob("*.py")):
+        h.update(str(p.relative_to(root)).encode() + b"\0" + p.read_bytes())
+    return f"{__version__}+{h.hexdigest()[:12]}"
+
+
+def run_fingerprint(cfg: PixieConfig, ds: BopDataset, obj_id: int) -> str:
+    """What a per-target result of ``obj_id`` depends on: code version, the whole config, the dataset (folder
+    and split) and the object's model file (hence its reference set, a function of model, config and code)."""
+    model = hashlib.sha256(Path(ds.model_path(obj_id)).read_bytes()).hexdigest()
+    blob = json.dumps({"code": code_version(), "config": cfg.to_dict(), "dataset": str(Path(ds.root).resolve()),
+                       "split": ds.split, "model": model}, sort_keys=True)
+    return hashlib.sha256(blob.encode()).hexdigest()[:16]
+
+
+def _valid_record(rec: dict | None, fingerprint: str) -> bool:
+    """A journal record that can be reused: made under ``fingerprint`` and well formed."""
+    if rec is None or rec.get("run") != fingerprint or not isinstance(rec.get("estimates"), list):
+        return False
+    try:
+        for e in rec["estimates"]:
+            if e["T"] is not None and np.asarray(e["T"], np.float64).shape != (4, 4):
+                return False
+            float(e["score"]), float(e["time"]), bool(e["failed"])
+    except (KeyError, TypeError, ValueError):
+        return False
+    return True
 
 
 def _tkey(t: Target) -> tuple[int, int, int]:

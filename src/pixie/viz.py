@@ -9,7 +9,7 @@ import numpy as np
 
 from pixie.camera import project
 from pixie.encode import shade
-from pixie.outputs import write_atomic
+from pixie.paths import write_atomic
 from pixie.references import ReferenceSet, encoding_images
 from pixie.render import Renderer
 

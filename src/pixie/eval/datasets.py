@@ -37,6 +37,7 @@ import numpy as np
 
 from pixie.errors import DatasetError
 from pixie.geometry import rodrigues
+from pixie.paths import write_atomic
 
 RESULTS_HEADER = "scene_id,im_id,obj_id,score,R,t,time"
 # Tolerance on |R R^T - I| for rotations read from result files. BOP files carry ~6-8
@@ -537,16 +538,19 @@ def read_results_csv(path: str | Path) -> list[PoseEstimate]:
     if not path.is_file():
         raise DatasetError(f"results file not found: {path}")
     out = []
-    with open(path, encoding="utf-8") as f:
-        for lineno, line in enumerate(f, 1):
-            s = line.strip()
-            if not s:
-                continue
-            if lineno == 1 and s.replace(" ", "").startswith("scene_id"):
-                if s.replace(" ", "") != RESULTS_HEADER:
-                    raise DatasetError(f"{path} line 1: header {s!r}, expected {RESULTS_HEADER!r}")
-                continue
-            out.append(_parse_result_line(s, lineno, path))
+    try:
+        text = path.read_text(encoding="utf-8")
+    except UnicodeDecodeError as exc:
+        raise DatasetError(f"{path} is not UTF-8 text (byte {exc.start}): is it a BOP results CSV?") from exc
+    for lineno, line in enumerate(text.splitlines(), 1):
+        s = line.strip()
+        if not s:
+            continue
+        if lineno == 1 and s.replace(" ", "").startswith("scene_id"):
+            if s.replace(" ", "") != RESULTS_HEADER:
+                raise DatasetError(f"{path} line 1: header {s!r}, expected {RESULTS_HEADER!r}")
+            continue
+        out.append(_parse_result_line(s, lineno, path))
     return out
 
 
@@ -560,8 +564,7 @@ def write_results_csv(path: str | Path, estimates: Iterable[PoseEstimate]) -> Pa
         R = " ".join(f"{v:.9g}" for v in T[:3, :3].reshape(-1))
         t = " ".join(f"{v:.9g}" for v in T[:3, 3])
         lines.append(f"{e.scene_id},{e.im_id},{e.obj_id},{e.score:.9g},{R},{t},{e.time:.6g}")
-    path.write_text("\n".join(lines) + "\n", encoding="utf-8")
-    return path
+    return write_atomic(path, "\n".join(lines) + "\n")
 
 
 def gt_as_estimates(dataset: BopDataset, targets: list[Target] | None = None) -> list[PoseEstimate]:

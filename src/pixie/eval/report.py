@@ -20,6 +20,7 @@ from pixie.eval.objects import ObjectData, load_object_data
 from pixie.eval.scores import Scores, TargetResult
 from pixie.eval.writers import format_table
 from pixie.geometry import orthonormalize
+from pixie.paths import write_atomic
 from pixie.viz import EST_COLOR, GT_COLOR, draw_contours
 
 
@@ -193,5 +194,4 @@ def write_report(
                 )
     parts.append("</body></html>")
     path = out / "report.html"
-    path.write_text("\n".join(parts), encoding="utf-8")
-    return path
+    return write_atomic(path, "\n".join(parts))

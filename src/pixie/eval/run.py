@@ -9,15 +9,18 @@ Typical use (what ``pixie eval DATASET --results results.csv -o OUT`` calls)::
 from __future__ import annotations
 
 import argparse
+import warnings
 from collections.abc import Callable, Iterable
 from pathlib import Path
 
+from pixie.errors import DatasetError, UsageError
 from pixie.eval.datasets import BopDataset, read_results_csv
 from pixie.eval.evaluate import evaluate
 from pixie.eval.objects import ObjectData
 from pixie.eval.report import write_report
-from pixie.eval.scores import ALL_METRICS, DEFAULT_METRICS, Scores
+from pixie.eval.scores import ALL_METRICS, DEFAULT_METRICS, Scores, normalize_metrics
 from pixie.eval.writers import format_table, write_per_target_csv, write_scores_json
+from pixie.paths import output_dir
 
 
 def run_eval(
@@ -86,7 +89,8 @@ def add_eval_arguments(parser: argparse.ArgumentParser) -> argparse.ArgumentPars
 
 
 def main_eval(args: argparse.Namespace) -> int:
-    """Entry point for ``pixie eval`` given parsed :func:`add_eval_arguments` arguments."""
+    """Entry point for ``pixie eval`` given parsed :func:`add_eval_arguments` arguments (checked first)."""
+    check_eval_args(args)
     run_eval(
         args.dataset,
         args.results,
@@ -98,3 +102,36 @@ def main_eval(args: argparse.Namespace) -> int:
         only_estimated=args.only_estimated,
     )
     return 0
+
+
+def check_eval_args(args: argparse.Namespace) -> None:
+    """Check ``pixie eval``'s inputs before scoring starts: metrics, the results file against the dataset, the
+    output folder (:class:`DatasetError`, :class:`UsageError` naming the problem)."""
+    if not [m for m in args.metrics.split(",") if m.strip()]:
+        raise UsageError(f"--metrics names no metric, got {args.metrics!r}")
+    normalize_metrics([m for m in args.metrics.split(",") if m])
+    ds = BopDataset(args.dataset)
+    rows = read_results_csv(args.results)
+    if not rows:
+        raise DatasetError(f"{args.results} holds no results (empty or header only): nothing to score")
+    targets = ds.targets()
+    objs, scenes = {t.obj_id for t in targets}, {t.scene_id for t in targets}
+    bad_objs = sorted({r.obj_id for r in rows} - objs)
+    if bad_objs:
+        raise DatasetError(f"{args.results}: object id(s) {bad_objs} are not targets of dataset {ds.name} "
+                           f"(objects {sorted(objs)}): results of another dataset?")
+    bad_scenes = sorted({r.scene_id for r in rows} - scenes)
+    if bad_scenes:
+        raise DatasetError(f"{args.results}: scene id(s) {bad_scenes} are not in dataset {ds.name} "
+                           f"(scenes {sorted(scenes)}): results of another dataset?")
+    keys = {(t.scene_id, t.im_id, t.obj_id) for t in targets}
+    n_off = sum((r.scene_id, r.im_id, r.obj_id) not in keys for r in rows)
+    if n_off == len(rows):
+        raise DatasetError(f"{args.results}: none of its {len(rows)} rows is a target (scene, image, object) of "
+                           f"dataset {ds.name}: results of another dataset or split?")
+    if n_off:
+        warnings.warn(f"{args.results}: {n_off} of {len(rows)} rows are not targets of dataset {ds.name}; "
+                      "they are ignored")
+    if args.n_points is not None and args.n_points < 1:
+        raise UsageError(f"--n-points must be at least 1, got {args.n_points}")
+    output_dir(args.out, what="output folder")

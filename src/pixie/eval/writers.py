@@ -3,33 +3,35 @@
 from __future__ import annotations
 
 import csv
+import io
 import json
 import math
 from pathlib import Path
 
 from pixie.eval.scores import Scores
+from pixie.paths import write_atomic
+
 
 def write_scores_json(scores: Scores, path: str | Path, with_targets: bool = True) -> Path:
     """Write ``scores.json`` (non-finite numbers become null). Returns the path."""
     path = Path(path)
     path.parent.mkdir(parents=True, exist_ok=True)
-    path.write_text(json.dumps(scores.to_dict(with_targets), indent=1), encoding="utf-8")
-    return path
+    return write_atomic(path, json.dumps(scores.to_dict(with_targets), indent=1))
 
 
 def write_per_target_csv(scores: Scores, path: str | Path) -> Path:
     """One row per valid GT instance with its errors."""
     path = Path(path)
     keys = sorted({k for t in scores.targets for k in t.errors})
-    with open(path, "w", newline="", encoding="utf-8") as f:
-        w = csv.writer(f)
-        w.writerow(["scene_id", "im_id", "obj_id", "gt_id", "visib_fract", "has_estimate", "score", *keys])
-        for t in scores.targets:
-            w.writerow(
-                [t.scene_id, t.im_id, t.obj_id, t.gt_id, t.visib_fract, int(t.has_estimate), t.score]
-                + [f"{t.errors.get(k, float('nan')):.6g}" for k in keys]
-            )
-    return path
+    f = io.StringIO(newline="")  # written whole, atomically
+    w = csv.writer(f)
+    w.writerow(["scene_id", "im_id", "obj_id", "gt_id", "visib_fract", "has_estimate", "score", *keys])
+    for t in scores.targets:
+        w.writerow(
+            [t.scene_id, t.im_id, t.obj_id, t.gt_id, t.visib_fract, int(t.has_estimate), t.score]
+            + [f"{t.errors.get(k, float('nan')):.6g}" for k in keys]
+        )
+    return write_atomic(path, f.getvalue())
 
 
 def _fmt(v, digits: int = 3) -> str:
