@@ -1,0 +1,156 @@
+"""Edge-template retrieval study on LM-O: is a contour template near the true rotation ranked first / top 24?
+
+Usage::
+
+    PYTHONPATH=src .venv/bin/python bench/lmo_edges.py [--max-targets 96] [--views 300] [--rolls 36] \
+        [--set key=value ...] [--out out/bench/lmo_edges.json]
+
+Per object, contour templates (:func:`pixie.contours.build_templates`: silhouette + crease points of
+``--views`` Fibonacci views rendered at low resolution) are built once. Per target the query crop (GT
+``bbox_visib``, pixie convention) gets orientation response maps (:func:`pixie.edges.prepare_query`) and every
+(view, roll) template is scored (:func:`pixie.edges.search`). Views are ranked by their best roll. A template
+counts as right when its rotation is within ``--near`` degrees of the ground truth *as seen by a camera looking
+at the object centre* (the GT rotation turned by the smallest rotation taking the optical axis onto the ray to
+the object centre: templates look at the object centre too), minimised over the object's symmetries.
+
+Reports per object and overall: top-1 / top-5 / top-24 (distinct views, best roll each) within ``--near``,
+the coverage ceiling (best template of all), and seconds per target (query prep + search). Writes JSON.
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import sys
+import time
+from pathlib import Path
+
+import numpy as np
+
+REPO = Path(__file__).resolve().parents[1]
+sys.path.insert(0, str(REPO / "bench"))
+import lmo_pipeline as L  # noqa: E402
+
+from pixie.camera import rotation_angle_deg  # noqa: E402
+from pixie.contours import build_templates  # noqa: E402
+from pixie.edges import prepare_query, search  # noqa: E402
+from pixie.query import check_bbox  # noqa: E402
+
+NAMES = {1: "ape", 5: "can", 6: "cat", 8: "driller", 9: "duck", 10: "eggbox", 11: "glue", 12: "holepuncher"}
+RANKS = (1, 5, 24)
+
+
+def centred_rotation(T: np.ndarray, centre: np.ndarray) -> np.ndarray:
+    """Rotation of pose ``T`` seen by a camera turned (about its centre) to look at the object centre."""
+    c = T[:3, :3] @ centre + T[:3, 3]
+    a = c / np.linalg.norm(c)
+    z = np.array([0.0, 0.0, 1.0])
+    v, cos = np.cross(a, z), float(a @ z)
+    vx = np.array([[0, -v[2], v[1]], [v[2], 0, -v[0]], [-v[1], v[0], 0]])
+    Rc = np.eye(3) + vx + vx @ vx / (1.0 + cos)  # rotates a onto z
+    return Rc @ T[:3, :3]
+
+
+def template_errors(tpl, angles: np.ndarray, R_c: np.ndarray, syms) -> np.ndarray:
+    """(V, A) rotation error (deg) of every rolled template against ``R_c``, min over symmetries."""
+    c, s = np.cos(angles), np.sin(angles)
+    Rz = np.zeros((len(angles), 3, 3))
+    Rz[:, 0, 0], Rz[:, 0, 1], Rz[:, 1, 0], Rz[:, 1, 1], Rz[:, 2, 2] = c, -s, s, c, 1
+    R = np.einsum("aij,vjk->vaik", Rz, tpl.poses[:, :3, :3])  # (V, A, 3, 3)
+    best = np.full(R.shape[:2], np.inf)
+    for S in ([np.eye(4)] if syms is None or len(syms) == 0 else syms):
+        G = R_c @ np.asarray(S)[:3, :3]
+        tr = np.einsum("vaij,ij->va", R, G)
+        best = np.minimum(best, np.degrees(np.arccos(np.clip((tr - 1) / 2, -1, 1))))
+    return best
+
+
+def parse_sets(items: list[str]) -> dict:
+    out = {}
+    for it in items:
+        k, v = it.split("=", 1)
+        try:
+            out[k] = json.loads(v)
+        except ValueError:
+            out[k] = v
+    return out
+
+
+def main(argv: list[str] | None = None) -> int:
+    ap = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
+    ap.add_argument("--dataset", type=Path, default=L.DEFAULT_DATASET)
+    ap.add_argument("--max-targets", type=int, default=96)
+    ap.add_argument("--views", type=int, default=300)
+    ap.add_argument("--size", type=int, default=128)
+    ap.add_argument("--points", type=int, default=96)
+    ap.add_argument("--rolls", type=int, default=36)
+    ap.add_argument("--near", type=float, default=20.0)
+    ap.add_argument("--set", action="append", default=[], dest="sets",
+                    help="prepare_query / search keyword, e.g. box_px=64, spread=5, crease_weight=0.5")
+    ap.add_argument("--out", type=Path, default=REPO / "out/bench/lmo_edges.json")
+    args = ap.parse_args(argv)
+    kw = parse_sets(args.sets)
+    qkw = {k: v for k, v in kw.items() if k in ("box_px", "pad", "sigma", "min_mag", "spread", "power")}
+    skw = {k: (tuple(v) if isinstance(v, list) else v) for k, v in kw.items() if k not in qkw}
+    ds = L.BopDataset(args.dataset)
+    objects = L.ObjectCache(ds)
+    targets = L.select_targets(ds, args.max_targets)
+    tpls, build = {}, {}
+    rows = []
+    t_all = time.perf_counter()
+    for i, t in enumerate(targets):
+        if t.obj_id not in tpls:
+            tpls[t.obj_id] = build_templates(objects.mesh(t.obj_id), args.views, args.size, args.points,
+                                             renderer=objects.renderer(t.obj_id))
+            build[t.obj_id] = tpls[t.obj_id].build_seconds
+        tpl = tpls[t.obj_id]
+        g = L.gt_instance(ds, t)
+        img = ds.load_rgb(t.scene_id, t.im_id)
+        box = check_bbox(g.box_visib, img.shape[:2])
+        t0 = time.perf_counter()
+        q = prepare_query(img, box, **qkw)
+        scores, info = search(tpl, q, n_rolls=args.rolls, **skw)
+        dt = time.perf_counter() - t0
+        od = objects.eval_data(t.obj_id)
+        err = template_errors(tpl, info["angles"], centred_rotation(g.T_cam_from_obj, objects.mesh(t.obj_id).center),
+                              od.syms if od.symmetric else None)
+        best_roll = np.argmax(scores, axis=1)
+        vscore = scores[np.arange(len(scores)), best_roll]
+        verr = err[np.arange(len(scores)), best_roll]
+        order = np.argsort(-vscore, kind="stable")
+        good = np.nonzero(verr[order] < args.near)[0]
+        pair_order = np.argsort(-scores.ravel(), kind="stable")
+        rows.append({"scene_id": t.scene_id, "im_id": t.im_id, "obj_id": t.obj_id, "visib": g.visib_fract,
+                     "rank": int(good[0]) if len(good) else None, "top1_err": float(verr[order[0]]),
+                     "min_err": float(err.min()), "pair_rank": int(np.nonzero(err.ravel()[pair_order] < args.near)[0][0])
+                     if (err < args.near).any() else None, "seconds": dt,
+                     "top1_score": float(vscore[order[0]])})
+        if (i + 1) % 24 == 0:
+            print(f"  {i + 1}/{len(targets)}  {time.perf_counter() - t_all:.0f} s", flush=True)
+
+    def summary(rs):
+        n = max(len(rs), 1)
+        d = {f"top{k}": sum(r["rank"] is not None and r["rank"] < k for r in rs) / n for k in RANKS}
+        d.update(n=len(rs), ceiling=sum(r["min_err"] < args.near for r in rs) / n,
+                 median_top1_err=float(np.median([r["top1_err"] for r in rs])) if rs else None,
+                 seconds=float(np.mean([r["seconds"] for r in rs])) if rs else None)
+        return d
+
+    per_obj = {NAMES.get(o, str(o)): summary([r for r in rows if r["obj_id"] == o]) for o in sorted({r["obj_id"] for r in rows})}
+    allsum = summary(rows)
+    print(f"\nedge retrieval, {len(rows)} targets, {args.views} views x {args.rolls} rolls, near {args.near} deg, {kw}")
+    print("| obj | n | top1 | top5 | top24 | ceiling | med top1 err | s/target |")
+    print("|---|---|---|---|---|---|---|---|")
+    for name, d in list(per_obj.items()) + [("all", allsum)]:
+        print(f"| {name} | {d['n']} | {d['top1']:.2f} | {d['top5']:.2f} | {d['top24']:.2f} | {d['ceiling']:.2f} | "
+              f"{d['median_top1_err']:.1f} | {d['seconds']:.3f} |")
+    print("template build s per object:", {NAMES.get(k, k): round(v, 1) for k, v in build.items()},
+          f"size {next(iter(tpls.values())).nbytes() / 1e6:.2f} MB")
+    args.out.parent.mkdir(parents=True, exist_ok=True)
+    args.out.write_text(json.dumps({"args": {k: str(v) for k, v in vars(args).items()}, "summary": allsum,
+                                    "per_object": per_obj, "build_seconds": build, "targets": rows}, indent=1))
+    return 0
+
+
+if __name__ == "__main__":
+    raise SystemExit(main())
