@@ -33,11 +33,12 @@ import lmo_pipeline as L  # noqa: E402
 
 from pixie.camera import rotation_angle_deg  # noqa: E402
 from pixie.contours import build_templates  # noqa: E402
-from pixie.edges import prepare_query, search  # noqa: E402
+from pixie.edges import prepare_query, search, template_bank  # noqa: E402
 from pixie.query import check_bbox  # noqa: E402
 
 NAMES = {1: "ape", 5: "can", 6: "cat", 8: "driller", 9: "duck", 10: "eggbox", 11: "glue", 12: "holepuncher"}
 RANKS = (1, 5, 24)
+TEMPLATE_VERSION = "t3"  # bump when pixie.contours changes what it stores
 
 
 def centred_rotation(T: np.ndarray, centre: np.ndarray) -> np.ndarray:
@@ -65,6 +66,35 @@ def template_errors(tpl, angles: np.ndarray, R_c: np.ndarray, syms) -> np.ndarra
     return best
 
 
+def cached_templates(objects, oid: int, views: int, size: int, points: int):
+    """Templates of one object, built once and kept in out/bench/templates/ (build time kept from the build)."""
+    import dataclasses
+
+    from pixie.contours import ContourTemplates
+
+    path = REPO / f"out/bench/templates/{TEMPLATE_VERSION}_v{views}_s{size}_p{points}/obj_{oid:06d}.npz"
+    if path.is_file():
+        with np.load(path) as z:
+            return ContourTemplates(**{f.name: (z[f.name] if z[f.name].ndim else z[f.name].item())
+                                       for f in dataclasses.fields(ContourTemplates)})
+    tpl = build_templates(objects.mesh(oid), views, size, points, renderer=objects.renderer(oid))
+    path.parent.mkdir(parents=True, exist_ok=True)
+    np.savez(path, **{f.name: getattr(tpl, f.name) for f in dataclasses.fields(ContourTemplates)})
+    return tpl
+
+
+def region_scores(tpl, q, v_i, a_i, info, band: float) -> np.ndarray:
+    """Region agreement of the placed outlines of pairs (v_i, a_i) on the query crop."""
+    from pixie.region import polygon_scores
+
+    ang = info["angles"][a_i]
+    c, s = np.cos(ang), np.sin(ang)
+    R = np.stack([np.stack([c, -s], -1), np.stack([s, c], -1)], -2)
+    out = np.einsum("kij,kmj->kmi", R, tpl.outline[info["views"][v_i]])
+    polys = info["origin"][v_i, a_i][:, None, :] + info["scale"][v_i, a_i][:, None, None] * out
+    return polygon_scores(q.crop.image, polys, max(int(round(band * q.box_wh.max())), 2), q.valid)
+
+
 def parse_sets(items: list[str]) -> dict:
     out = {}
     for it in items:
@@ -85,35 +115,50 @@ def main(argv: list[str] | None = None) -> int:
     ap.add_argument("--points", type=int, default=96)
     ap.add_argument("--rolls", type=int, default=36)
     ap.add_argument("--near", type=float, default=20.0)
+    ap.add_argument("--region-k", type=int, default=0, help="region-score the K best pairs by edges (saved for offline fusion)")
+    ap.add_argument("--region-w", type=float, default=1.0, help="weight of (region - 0.5) added to the edge score")
+    ap.add_argument("--band", type=float, default=0.15, help="region band width, fraction of the box's longer side")
     ap.add_argument("--set", action="append", default=[], dest="sets",
                     help="prepare_query / search keyword, e.g. box_px=64, spread=5, crease_weight=0.5")
     ap.add_argument("--out", type=Path, default=REPO / "out/bench/lmo_edges.json")
     args = ap.parse_args(argv)
     kw = parse_sets(args.sets)
     qkw = {k: v for k, v in kw.items() if k in ("box_px", "pad", "sigma", "min_mag", "spread", "power")}
-    skw = {k: (tuple(v) if isinstance(v, list) else v) for k, v in kw.items() if k not in qkw}
+    bkw = {k: v for k, v in kw.items() if k in ("crease_weight",)}
+    skw = {k: (tuple(v) if isinstance(v, list) else v) for k, v in kw.items() if k not in qkw and k not in bkw}
     ds = L.BopDataset(args.dataset)
     objects = L.ObjectCache(ds)
     targets = L.select_targets(ds, args.max_targets)
-    tpls, build = {}, {}
+    tpls, build, banks = {}, {}, {}
     rows = []
     t_all = time.perf_counter()
     for i, t in enumerate(targets):
         if t.obj_id not in tpls:
-            tpls[t.obj_id] = build_templates(objects.mesh(t.obj_id), args.views, args.size, args.points,
-                                             renderer=objects.renderer(t.obj_id))
+            tpls[t.obj_id] = cached_templates(objects, t.obj_id, args.views, args.size, args.points)
             build[t.obj_id] = tpls[t.obj_id].build_seconds
-        tpl = tpls[t.obj_id]
+            banks[t.obj_id] = template_bank(tpls[t.obj_id], args.rolls, **bkw)
+        tpl, bank = tpls[t.obj_id], banks[t.obj_id]
         g = L.gt_instance(ds, t)
         img = ds.load_rgb(t.scene_id, t.im_id)
         box = check_bbox(g.box_visib, img.shape[:2])
         t0 = time.perf_counter()
         q = prepare_query(img, box, **qkw)
-        scores, info = search(tpl, q, n_rolls=args.rolls, **skw)
-        dt = time.perf_counter() - t0
+        scores, info = search(bank, q, **skw)
         od = objects.eval_data(t.obj_id)
         err = template_errors(tpl, info["angles"], centred_rotation(g.T_cam_from_obj, objects.mesh(t.obj_id).center),
                               od.syms if od.symmetric else None)
+        extra = {}
+        if args.region_k > 0:
+            top = np.argsort(-scores.ravel(), kind="stable")[: args.region_k]
+            v_i, a_i = np.unravel_index(top, scores.shape)
+            reg = region_scores(tpl, q, v_i, a_i, info, args.band)
+            edge_top = scores.ravel()[top].copy()
+            fused = edge_top + args.region_w * (reg - 0.5)
+            scores = np.full_like(scores, -np.inf)
+            scores[v_i, a_i] = fused
+            extra = {"cand_edge": edge_top.tolist(), "cand_region": reg.tolist(),
+                     "cand_err": err[v_i, a_i].tolist(), "cand_view": v_i.tolist()}
+        dt = time.perf_counter() - t0
         best_roll = np.argmax(scores, axis=1)
         vscore = scores[np.arange(len(scores)), best_roll]
         verr = err[np.arange(len(scores)), best_roll]
@@ -124,7 +169,7 @@ def main(argv: list[str] | None = None) -> int:
                      "rank": int(good[0]) if len(good) else None, "top1_err": float(verr[order[0]]),
                      "min_err": float(err.min()), "pair_rank": int(np.nonzero(err.ravel()[pair_order] < args.near)[0][0])
                      if (err < args.near).any() else None, "seconds": dt,
-                     "top1_score": float(vscore[order[0]])})
+                     "top1_score": float(vscore[order[0]]), **extra})
         if (i + 1) % 24 == 0:
             print(f"  {i + 1}/{len(targets)}  {time.perf_counter() - t_all:.0f} s", flush=True)
 

@@ -43,7 +43,7 @@ class ContourTemplates:
     ori : (V, N) float32, unsigned edge orientation (gradient direction) in [0, pi), radians
     kind : (V, N) int8, SILHOUETTE or CREASE; padding points (views with fewer edges) have kind -1
     xyz : (V, N, 3) float32, object point under each contour point (mm)
-    outline : (V, M, 2) float32, the whole silhouette boundary subsampled to M points (for boxes of rolled views)
+    outline : (V, M, 2) float32, the outer silhouette boundary as an ordered polygon of M points, its box the\n        mask's box (boxes of rolled views, region masks)
     size : int, side of the template renders, px
     build_seconds : float
     """
@@ -211,11 +211,20 @@ def view_points(depth: np.ndarray, normals: np.ndarray, K: np.ndarray, T: np.nda
     r, c = P[:, 1].astype(int), P[:, 0].astype(int)
     z = depth[r, c].astype(np.float64)
     X = transform_points(invert_T(T), backproject(K, P, z))
-    # the outline: boundary points evenly spaced, its extreme points first (its box is the mask's box)
-    if len(pts_s):
-        ext = [np.argmin(pts_s[:, 0]), np.argmax(pts_s[:, 0]), np.argmin(pts_s[:, 1]), np.argmax(pts_s[:, 1])]
-        oi = np.concatenate([ext, np.linspace(0, len(pts_s) - 1, n_outline - 4).round().astype(int)])
-        outline = pts_s[oi]
+    # the outline: the largest outer boundary, ordered (a polygon), evenly resampled with its four extreme
+    # points in place (so the polygon's box is the mask's box)
+    outer, _ = cv2.findContours((depth > 0).astype(np.uint8), cv2.RETR_EXTERNAL, cv2.CHAIN_APPROX_NONE)
+    if outer:
+        ring = max(outer, key=len)[:, 0, :].astype(np.float64)
+        oi = np.linspace(0, len(ring), n_outline, endpoint=False).astype(int)
+        for e in (np.argmin(ring[:, 0]), np.argmax(ring[:, 0]), np.argmin(ring[:, 1]), np.argmax(ring[:, 1])):
+            oi[np.argmin(np.abs(oi - e))] = e
+        lo, hi = pts_s.min(axis=0), pts_s.max(axis=0)  # all boundaries: holes and parts are inside / beside
+        outline = ring[np.sort(oi)]
+        outline[np.argmin(outline[:, 0]), 0] = lo[0]
+        outline[np.argmax(outline[:, 0]), 0] = hi[0]
+        outline[np.argmin(outline[:, 1]), 1] = lo[1]
+        outline[np.argmax(outline[:, 1]), 1] = hi[1]
     else:
         outline = np.zeros((n_outline, 2))
     pp = K[:2, 2]

@@ -35,9 +35,10 @@ class EdgeQuery:
     centre: np.ndarray  # (2,) query box centre in crop px
     mag: np.ndarray  # (H, W) gradient magnitude (kept for diagnostics / region cues)
     bins: np.ndarray  # (H, W) uint8 orientation bin, 255 where no edge
+    valid: np.ndarray  # (H, W) bool, crop pixels inside the photo
 
 
-def quantised_orientations(image: np.ndarray, sigma: float = 1.0, min_mag: float = 12.0,
+def quantised_orientations(image: np.ndarray, sigma: float = 1.0, min_mag: float = 6.0,
                            valid: np.ndarray | None = None) -> tuple[np.ndarray, np.ndarray]:
     """Per-pixel orientation bin (0..7 over [0, pi), 255 = no edge) of the strongest RGB channel gradient.
 
@@ -94,7 +95,7 @@ def response_maps(bins: np.ndarray, spread: int = 5, power: float = 2.0) -> np.n
 
 
 def prepare_query(image: np.ndarray, box_xyxy: np.ndarray, box_px: float = 64.0, pad: float = 1.6,
-                  sigma: float = 1.0, min_mag: float = 12.0, spread: int = 5, power: float = 2.0) -> EdgeQuery:
+                  sigma: float = 1.0, min_mag: float = 6.0, spread: int = 5, power: float = 2.0) -> EdgeQuery:
     """Crop the photo around ``box_xyxy`` so that its longer side spans ``box_px`` px and build response maps."""
     w, h = box_xyxy[2] - box_xyxy[0], box_xyxy[3] - box_xyxy[1]
     L = max(w, h)
@@ -106,7 +107,7 @@ def prepare_query(image: np.ndarray, box_xyxy: np.ndarray, box_px: float = 64.0,
     bins, mag = quantised_orientations(crop.image, sigma, min_mag, valid)
     resp = response_maps(bins, spread, power)
     s = size / (pad * L)
-    return EdgeQuery(resp, crop, np.array([w * s, h * s]), np.full(2, (size - 1) / 2.0), mag, bins)
+    return EdgeQuery(resp, crop, np.array([w * s, h * s]), np.full(2, (size - 1) / 2.0), mag, bins, valid)
 
 
 def orientation_bins(ori: np.ndarray) -> np.ndarray:
@@ -122,19 +123,69 @@ def placement(box_t: np.ndarray, q: EdgeQuery) -> tuple[np.ndarray, np.ndarray]:
     return s, c
 
 
-def score_points(q: EdgeQuery, xy: np.ndarray, bins: np.ndarray, weights: np.ndarray,
-                 shifts: np.ndarray) -> np.ndarray:
-    """Scores (T, S) of T placed point sets (T, N, 2 crop px) under S pixel shifts (S, 2)."""
+@dataclass
+class TemplateBank:
+    """Contour templates rolled to every in-plane angle, ready for scoring (query independent: build once).
+
+    Attributes
+    ----------
+    views : (V,) template view indices;  angles : (A,) roll angles, radians
+    xy : (V*A, N, 2) float32 offsets from the rolled outline's box centre, template px
+    bins : (V*A, N) int64 orientation bin x (H*W) is added per query; kept as plain bins here
+    weights : (V*A, N) float32 (silhouette 1, crease ``crease_weight``, padding 0)
+    wh : (V*A, 2) rolled outline box width, height (template px)
+    origin : (V*A, 2) principal point relative to the rolled box centre (template px)
+    """
+
+    views: np.ndarray
+    angles: np.ndarray
+    xy: np.ndarray
+    bins: np.ndarray
+    weights: np.ndarray
+    wh: np.ndarray
+    origin: np.ndarray
+
+    @property
+    def shape(self) -> tuple[int, int]:
+        return len(self.views), len(self.angles)
+
+
+def template_bank(tpl: ContourTemplates, n_rolls: int = 36, crease_weight: float = 0.5,
+                  views: np.ndarray | None = None, angles: np.ndarray | None = None) -> TemplateBank:
+    """Roll every template view to ``n_rolls`` angles (or ``angles``) and precompute what scoring needs."""
+    views = np.arange(tpl.n_views) if views is None else np.asarray(views)
+    angles = np.arange(n_rolls) * (2 * np.pi / n_rolls) if angles is None else np.asarray(angles, np.float64)
+    sub = ContourTemplates(tpl.poses[views], tpl.K, tpl.xy[views], tpl.ori[views], tpl.kind[views], tpl.xyz[views],
+                           tpl.outline[views], tpl.size)
+    xy, ori, boxes = sub.rolled(angles)
+    V, A, N = ori.shape
+    c = 0.5 * (boxes[..., :2] + boxes[..., 2:])
+    w = np.where(sub.kind == CREASE, crease_weight, 1.0) * (sub.kind >= 0)
+    return TemplateBank(
+        views=views, angles=angles,
+        xy=(xy - c[:, :, None, :]).reshape(V * A, N, 2).astype(np.float32),
+        bins=orientation_bins(ori).reshape(V * A, N),
+        weights=np.broadcast_to(w[:, None, :], (V, A, N)).reshape(V * A, N).astype(np.float32),
+        wh=np.maximum((boxes[..., 2:] - boxes[..., :2]).reshape(V * A, 2), 1e-3).astype(np.float32),
+        origin=(-c).reshape(V * A, 2).astype(np.float32),
+    )
+
+
+def score_bank(q: EdgeQuery, xy: np.ndarray, bins: np.ndarray, weights: np.ndarray, shifts: np.ndarray) -> np.ndarray:
+    """Scores (T, S) of T placed point sets (T, N, 2 crop px, float) under S integer pixel shifts (S, 2)."""
     nb, H, W = q.resp.shape
-    flat = q.resp.reshape(-1)
-    wsum = np.maximum(weights.sum(axis=1), 1e-9)
-    base = bins.astype(np.int64) * (H * W)
-    out = np.zeros((xy.shape[0], len(shifts)), np.float32)
-    for k, (dx, dy) in enumerate(shifts):
-        x = np.clip(np.rint(xy[..., 0] + dx).astype(np.int64), 0, W - 1)
-        y = np.clip(np.rint(xy[..., 1] + dy).astype(np.int64), 0, H - 1)
-        r = flat[base + y * W + x]
-        out[:, k] = (r * weights).sum(axis=1) / wsum
+    pad = int(np.abs(shifts).max()) + 1 if len(shifts) else 1
+    Hp, Wp = H + 2 * pad, W + 2 * pad
+    flat = np.zeros((nb, Hp, Wp), np.float32)
+    flat[:, pad:pad + H, pad:pad + W] = q.resp
+    flat = flat.reshape(-1)
+    x = np.clip(np.rint(xy[..., 0]).astype(np.int64), -1, W) + pad  # off the crop: the zero border
+    y = np.clip(np.rint(xy[..., 1]).astype(np.int64), -1, H) + pad
+    base = bins.astype(np.int64) * (Hp * Wp) + y * Wp + x
+    wn = weights / np.maximum(weights.sum(axis=1, keepdims=True), 1e-9)
+    out = np.empty((xy.shape[0], len(shifts)), np.float32)
+    for k, (dx, dy) in enumerate(np.asarray(shifts, np.int64)):
+        out[:, k] = np.einsum("tn,tn->t", flat[base + (dy * Wp + dx)], wn)
     return out
 
 
@@ -149,42 +200,42 @@ class EdgeMatch:
     offset: np.ndarray  # (M, 2) crop px of the template's principal point (the object centre's image)
 
 
-def search(tpl: ContourTemplates, q: EdgeQuery, n_rolls: int = 36, crease_weight: float = 0.5,
+def search(tpl: ContourTemplates | TemplateBank, q: EdgeQuery, n_rolls: int = 36, crease_weight: float = 0.5,
            shift_px: float = 4.0, shift_steps: int = 1, scales: tuple[float, ...] = (1.0,),
            views: np.ndarray | None = None, angles: np.ndarray | None = None) -> tuple[np.ndarray, dict]:
     """Score every (view, roll) template against the query; returns scores (V, A) and the best placement per pair.
 
     Parameters
     ----------
-    n_rolls : in-plane angles 0, 360/n_rolls, ... (ignored when ``angles`` is given)
+    tpl : templates, or a prebuilt :class:`TemplateBank` (then ``n_rolls``, ``crease_weight``, ``views`` and
+        ``angles`` are those of the bank)
     shift_px, shift_steps : shift grid (2*steps+1)^2 with this step, crop px
     scales : multipliers of the box-implied scale
+
+    Returns
+    -------
+    scores : (V, A)
+    info : views, angles, and per pair the best 'scale' (template px -> crop px) and 'origin' (crop px where the
+        template's principal point, i.e. the object centre, lands)
     """
-    views = np.arange(tpl.n_views) if views is None else np.asarray(views)
-    angles = np.arange(n_rolls) * (2 * np.pi / n_rolls) if angles is None else np.asarray(angles, np.float64)
-    sub = ContourTemplates(tpl.poses[views], tpl.K, tpl.xy[views], tpl.ori[views], tpl.kind[views], tpl.xyz[views],
-                           tpl.outline[views], tpl.size)
-    xy, ori, boxes = sub.rolled(angles)  # (V, A, N, 2), (V, A, N), (V, A, 4)
-    V, A, N = ori.shape
-    s0, c0 = placement(boxes, q)
-    w = np.where(sub.kind == CREASE, crease_weight, 1.0) * (sub.kind >= 0)
-    w = np.broadcast_to(w[:, None, :], (V, A, N)).reshape(V * A, N).astype(np.float32)
-    b = orientation_bins(ori).reshape(V * A, N)
-    g = np.arange(-shift_steps, shift_steps + 1) * shift_px
+    bank = tpl if isinstance(tpl, TemplateBank) else template_bank(tpl, n_rolls, crease_weight, views, angles)
+    V, A = bank.shape
+    s0 = np.maximum(q.box_wh[0] / bank.wh[:, 0], q.box_wh[1] / bank.wh[:, 1]).astype(np.float32)
+    g = np.rint(np.arange(-shift_steps, shift_steps + 1) * shift_px).astype(np.int64)
     shifts = np.stack(np.meshgrid(g, g), -1).reshape(-1, 2)
     best = np.full(V * A, -1.0, np.float32)
     best_s = np.ones(V * A, np.float32)
     best_o = np.zeros((V * A, 2), np.float32)
     for sc in scales:
-        s = (s0 * sc).reshape(V * A, 1, 1)
-        P = q.centre + s * (xy.reshape(V * A, N, 2) - c0.reshape(V * A, 1, 2))
-        sco = score_points(q, P, b, w, shifts)
+        s = (s0 * sc)[:, None]
+        P = q.centre.astype(np.float32) + s[:, :, None] * bank.xy
+        sco = score_bank(q, P, bank.bins, bank.weights, shifts)
         k = np.argmax(sco, axis=1)
         val = sco[np.arange(V * A), k]
         upd = val > best
         best = np.where(upd, val, best)
-        best_s = np.where(upd, s[:, 0, 0], best_s)
-        origin = q.centre - s[:, 0, :] * c0.reshape(V * A, 2)  # where the principal point lands
+        best_s = np.where(upd, s[:, 0], best_s)
+        origin = q.centre + s * bank.origin  # where the principal point lands
         best_o = np.where(upd[:, None], origin + shifts[k], best_o)
-    return best.reshape(V, A), {"views": views, "angles": angles, "scale": best_s.reshape(V, A),
+    return best.reshape(V, A), {"views": bank.views, "angles": bank.angles, "scale": best_s.reshape(V, A),
                                 "origin": best_o.reshape(V, A, 2)}
