@@ -193,7 +193,7 @@ def spread_points(pts: np.ndarray, score: np.ndarray, n: int, min_dist: float, m
 
 
 def view_points(depth: np.ndarray, normals: np.ndarray, K: np.ndarray, T: np.ndarray, n_points: int = 96,
-                crease_share: float = 0.35, n_outline: int = 64, crease_deg: float = 35.0) -> dict:
+                crease_share: float = 0.35, n_outline: int = 128, crease_deg: float = 35.0) -> dict:
     """Oriented contour points of one rendered view (see :class:`ContourTemplates` for the fields)."""
     sil, crease, ori, strength = edge_map(depth, normals, crease_deg)
     # silhouette: evenly along the boundary curves (outer outline and holes), by arc length
@@ -232,7 +232,7 @@ def view_points(depth: np.ndarray, normals: np.ndarray, K: np.ndarray, T: np.nda
 
 
 def build_templates(mesh: Mesh, n_views: int = 300, size: int = 128, n_points: int = 96, crease_share: float = 0.35,
-                    n_outline: int = 64, focal_factor: float = 4.0, renderer: Renderer | None = None,
+                    n_outline: int = 128, focal_factor: float = 4.0, renderer: Renderer | None = None,
                     crease_deg: float = 35.0) -> ContourTemplates:
     """Render depth/normals of ``n_views`` roll-0 views at ``size`` px and extract their contour points.
 

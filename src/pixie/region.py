@@ -119,16 +119,25 @@ def _line_targets(pf_img: np.ndarray, pts: np.ndarray, nrm: np.ndarray, reach: i
     outer = (cs[:, k + 4] - cs[:, k]) / 4.0
     diff = inner - outer
     j = np.argmax(diff, axis=1)
-    return (offs[k[j]] - 1.0).astype(np.float64), diff[np.arange(len(pts)), j]
+    rows = np.arange(len(pts))
+    # sub-pixel: vertex of the parabola through the peak and its neighbours
+    a = diff[rows, np.maximum(j - 1, 0)]
+    b = diff[rows, j]
+    c = diff[rows, np.minimum(j + 1, diff.shape[1] - 1)]
+    den = a - 2 * b + c
+    sub = np.where(den < -1e-9, 0.5 * (a - c) / np.where(den < -1e-9, den, -1.0), 0.0)
+    # the contour pixel is the last one inside: the silhouette edge sits half a pixel out, and the step
+    # between samples k-1 and k half a pixel before offs[k]; at the right pose offs[k] = 1
+    return (offs[k[j]] - 1.0 + np.clip(sub, -0.5, 0.5)).astype(np.float64), b
 
 
 def refine_pose(renderer: Renderer, T0: np.ndarray, K: np.ndarray, image: np.ndarray, iterations: int = 8,
-                reach: tuple[int, ...] | int = (16, 8, 4), step: int = 3, band_px: int = 12, bits: int = 3,
+                reach: tuple[int, ...] | int = (16, 8, 4), step: int = 3, band_px: int | None = None, bits: int = 3,
                 min_strength: float = 0.15, damping: float = 1e-3, valid: np.ndarray | None = None) -> RegionRefineResult:
     """Region-based 6-DoF refinement of ``T0`` in ``image`` (intrinsics ``K``; crop images work with crop K).
 
     Each iteration renders the object, rebuilds colour posteriors from the rendered silhouette and a
-    ``band_px`` band around it, finds each contour point's best transition along its normal (within
+    ``band_px`` band around it (default: a quarter of the silhouette's longer side), finds each contour point's best transition along its normal (within
     ``reach`` px) and takes a Levenberg-Marquardt step on the point-to-line distances (Tukey-weighted by the
     transition strength). Coarse to fine: up to ``iterations`` steps at each reach of the schedule; a scale
     ends when the update moves the contour by less than 0.05 px on average.
@@ -148,8 +157,16 @@ def refine_pose(renderer: Renderer, T0: np.ndarray, K: np.ndarray, image: np.nda
                 break
     r = renderer.render(T, K, H, W)
     mask = r.mask if valid is None else r.mask & valid
-    score = separation(idx, mask, band(mask, band_px, valid), n_bins) if mask.any() else 0.5
+    score = separation(idx, mask, band(mask, band_px or _band_width(mask), valid), n_bins) if mask.any() else 0.5
     return RegionRefineResult(T, score, it, n_used)
+
+
+def _band_width(mask: np.ndarray, frac: float = 0.25) -> int:
+    """``frac`` of the longer side of the mask's box, at least 3 px."""
+    ys, xs = np.nonzero(mask)
+    if len(xs) == 0:
+        return 3
+    return max(int(round(frac * max(np.ptp(xs), np.ptp(ys)))), 3)
 
 
 def _region_step(renderer, T, K, idx, n_bins, reach, step, band_px, min_strength, damping, valid):
@@ -159,7 +176,7 @@ def _region_step(renderer, T, K, idx, n_bins, reach, step, band_px, min_strength
     mask = r.mask if valid is None else r.mask & valid
     if mask.sum() < 20:
         return T, 0, 0.0
-    out = band(mask, band_px, valid)
+    out = band(mask, band_px or _band_width(mask), valid)
     pf = posterior(idx, mask, out, n_bins)
     pf_img = pf[idx]
     pts, nrm = _contour_points(r.depth, step)
