@@ -383,8 +383,15 @@ def run_pipeline(ds: BopDataset, targets: list[Target], cfg: PixieConfig, name: 
             dt = time.perf_counter() - t0
             err = pose_errors(od, res.T_cam_from_obj, g.T_cam_from_obj)
             # the distinct hypotheses (multi-hypothesis output): is any of them right?
-            hyp_ok = [bool(pose_errors(od, h.T_cam_from_obj, g.T_cam_from_obj)["add_ok"]) for h in res.hypotheses]
-            rec = {"hyp_add_ok": hyp_ok, "scene_id": t.scene_id, "im_id": t.im_id, "obj_id": t.obj_id, "visib": g.visib_fract,
+            hyp_err = [pose_errors(od, h.T_cam_from_obj, g.T_cam_from_obj) for h in res.hypotheses]
+            hyp_ok = [bool(e["add_ok"]) for e in hyp_err]
+            # score terms of each output hypothesis (offline re-ranking / fusion-weight studies)
+            hyp_terms = [{"source": h.source, "score": h.score, "match_score": h.match_score,
+                          "edge": None if not np.isfinite(h.edge) else h.edge,
+                          "region": None if not np.isfinite(h.region) else h.region,
+                          "add_ok": bool(e["add_ok"]), "rot_err": e["rot_err"], "add": e["add"]}
+                         for h, e in zip(res.hypotheses, hyp_err)]
+            rec = {"hyp_add_ok": hyp_ok, "hyps": hyp_terms, "scene_id": t.scene_id, "im_id": t.im_id, "obj_id": t.obj_id, "visib": g.visib_fract,
                    "T": None if res.T_cam_from_obj is None else res.T_cam_from_obj.tolist(), "score": res.score,
                    "n_inliers": res.n_inliers, "failed": res.failed, "view": res.view, "roll": res.roll,
                    "seconds": dt, "timings": res.timings, **err}

@@ -97,12 +97,40 @@ class RefineConfig:
 
 
 @dataclass
+class ShapeConfig:
+    """Shape cues beside the matcher (pixie.shape): contour templates, edge + region verification, region refinement.
+
+    Off by default in the paper pipeline; see bench/RESULTS.md (LM-O edge retrieval and fusion) for the measured
+    settings.
+    """
+
+    enabled: bool = False
+    views: int = 300  # template views (Fibonacci; nearest-view gap ~7°), rendered at `size` px (depth + normals)
+    size: int = 128
+    points: int = 96  # oriented contour points per template (silhouette + creases)
+    rolls: int = 36  # in-plane angles searched (every 10°)
+    crease_weight: float = 0.5
+    min_mag: float = 6.0  # query gradient threshold (grey levels / px)
+    region_k: int = 300  # best (view, roll) pairs by edges that get a region score before ranking
+    region_weight: float = 1.0  # template ranking: edge + region_weight * (region - 0.5)
+    candidates: int = 24  # best template views added as pose hypotheses
+    verify_matcher: int = 12  # best distinct matcher hypotheses verified beside them
+    # verification score = w_match * matcher score / best matcher score + w_edge * edge + w_region * (region - 0.5)
+    w_match: float = 0.5
+    w_edge: float = 1.0
+    w_region: float = 1.0
+    refine_hypotheses: int = 0  # best verified hypotheses refined by region-based refinement (pixie.region)
+    refine_box_px: float = 96.0  # refinement crop: the box's longer side in px
+
+
+@dataclass
 class PixieConfig:
     refs: RefsConfig = field(default_factory=RefsConfig)
     query: QueryConfig = field(default_factory=QueryConfig)
     match: MatchConfig = field(default_factory=MatchConfig)
     pose: PoseConfig = field(default_factory=PoseConfig)
     refine: RefineConfig = field(default_factory=RefineConfig)
+    shape: ShapeConfig = field(default_factory=ShapeConfig)
 
     def to_dict(self) -> dict[str, Any]:
         return dataclasses.asdict(self)

@@ -41,7 +41,11 @@ class Hypothesis:
     box_iou: float
     sim_sum: float = 0.0  # summed matcher similarity (cosine for NN backends) of the PnP inliers
     sim_mean: float = 0.0  # its mean over the inliers
-    source: str = "reference"  # 'reference' (first pass), 'view_selection', 'recrop' or 'render' (render-at-estimate)
+    source: str = "reference"  # 'reference' (first pass), 'view_selection', 'recrop', 'render' (render-at-estimate),
+    # 'edges' (contour template) or 'region' (region-refined)
+    match_score: float = 0.0  # the matcher's score before shape verification replaced ``score``
+    edge: float = float("nan")  # shape verification terms (pixie.shape), when run
+    region: float = float("nan")
 
 
 @dataclass
@@ -66,7 +70,9 @@ class PoseResult:
             "view": self.view, "roll": self.roll, "confidence": self.confidence, "timings": self.timings,
             "hypotheses": [
                 {"T_cam_from_obj": h.T_cam_from_obj.tolist(), "score": h.score, "n_inliers": h.n_inliers,
-                 "view": h.view, "roll": h.roll, "source": h.source} for h in self.hypotheses
+                 "view": h.view, "roll": h.roll, "source": h.source, "match_score": h.match_score,
+                 "edge": None if not np.isfinite(h.edge) else h.edge,
+                 "region": None if not np.isfinite(h.region) else h.region} for h in self.hypotheses
             ],
         }
 
@@ -120,6 +126,11 @@ class PoseEstimator:
         # exact projected boxes (a vertex subsample makes them ~0.6 % small on LM-O, i.e. z ~0.6 % short)
         self._box_points = refs.mesh.hull_vertices
         self._renderer = None  # built on first use by render-at-estimate refinement
+        self._shape = None
+        if self.cfg.shape.enabled:
+            from pixie.shape import shape_cues
+
+            self._shape = shape_cues(refs, self.cfg.shape)
         self._ranked_pairs: list[tuple[int, int]] = []  # (view, roll) pairs of the last query, best first
 
     # ------------------------------------------------------------------------------------------------
@@ -167,6 +178,8 @@ class PoseEstimator:
             t = time.perf_counter()
             hyps = self._render_refine(hyps, crops[0], qfeats[0], K, box)
             timings["render_refine"] = time.perf_counter() - t
+        if self._shape is not None:
+            hyps = self._shape_stage(hyps, image, K, box, timings)
         timings["total"] = time.perf_counter() - t_all
         return self._result(hyps, box, K, timings)
 
@@ -412,6 +425,44 @@ class PoseEstimator:
             out.append(Hypothesis(T, 0.0, 0, 0, v, r, 0.0, 0.0, source="seed"))
         return out
 
+    def _shape_stage(self, hyps: list[Hypothesis], image, K, box, timings: dict) -> list[Hypothesis]:
+        """Shape cues (``config.shape``): add the best edge-template poses, verify every candidate by edge and
+        region agreement, re-rank by the fused score and region-refine the best few."""
+        from pixie.shape import fused_score
+
+        sc, cues = self.cfg.shape, self._shape
+        t = time.perf_counter()
+        q = cues.query(image, box)
+        cands = cues.retrieve(q, K, sc.candidates)
+        timings["edge_retrieval"] = time.perf_counter() - t
+        t = time.perf_counter()
+        best_match = max([h.score for h in hyps], default=0.0)
+        pool = self._distinct(hyps, sc.verify_matcher)
+        for h in pool:
+            h.match_score = h.score
+        for c in cands:
+            T = depth_from_box(c.T_cam_from_obj, K, self._box_points, box) if self.cfg.pose.depth_from_bbox else c.T_cam_from_obj
+            pool.append(Hypothesis(T, 0.0, 0, 0, -1, -1, 0.0, box_iou(projected_box(T, K, self._box_points), box),
+                                   source="edges"))
+        for h in pool:
+            h.edge, h.region = cues.verify(q, K, h.T_cam_from_obj)
+            h.score = fused_score(sc, h.match_score, best_match, h.edge, h.region)
+        pool.sort(key=lambda h: -h.score)
+        timings["verify"] = time.perf_counter() - t
+        if sc.refine_hypotheses > 0:
+            t = time.perf_counter()
+            for h in self._distinct(pool, sc.refine_hypotheses):
+                res = cues.refine(image, K, h.T_cam_from_obj, box, sc.refine_box_px)
+                nh = Hypothesis(res.T_cam_from_obj, 0.0, h.n_inliers, h.n_matches, h.view, h.roll, 0.0,
+                                box_iou(projected_box(res.T_cam_from_obj, K, self._box_points), box), h.sim_sum,
+                                h.sim_mean, source="region", match_score=h.match_score)
+                nh.edge, nh.region = cues.verify(q, K, nh.T_cam_from_obj)
+                nh.score = fused_score(sc, nh.match_score, best_match, nh.edge, nh.region)
+                pool.append(nh)
+            pool.sort(key=lambda h: -h.score)
+            timings["region_refine"] = time.perf_counter() - t
+        return pool
+
     @staticmethod
     def _distinct(hyps: list[Hypothesis], n: int, min_deg: float = 10.0) -> list[Hypothesis]:
         """The first ``n`` hypotheses that differ by more than ``min_deg`` in rotation (hyps sorted by score)."""
@@ -430,7 +481,8 @@ class PoseEstimator:
         distinct = self._distinct(hyps, self.cfg.refine.n_hypotheses)
         second = distinct[1].score if len(distinct) > 1 else 0.0
         confidence = float(best.score / (best.score + second)) if best.score > 0 else 0.0
-        failed = best.n_inliers < max(self.cfg.pose.min_inliers, 1) or best.score <= 0
+        shape_pose = best.source in ("edges", "region") or np.isfinite(best.edge)
+        failed = (best.n_inliers < max(self.cfg.pose.min_inliers, 1) and not shape_pose) or best.score <= 0
         msg = "ok" if not failed else "low support"
         return PoseResult(best.T_cam_from_obj, best.score, best.n_inliers, failed, msg, best.view, best.roll,
                           confidence, distinct, timings)
