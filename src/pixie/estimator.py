@@ -46,6 +46,7 @@ class Hypothesis:
     match_score: float = 0.0  # the matcher's score before shape verification replaced ``score``
     edge: float = float("nan")  # shape verification terms (pixie.shape), when run
     region: float = float("nan")
+    terms: dict = field(default_factory=dict)  # every verification term (pixie.shape.ShapeCues.verify_terms)
 
 
 @dataclass
@@ -445,7 +446,8 @@ class PoseEstimator:
             pool.append(Hypothesis(T, 0.0, 0, 0, -1, -1, 0.0, box_iou(projected_box(T, K, self._box_points), box),
                                    source="edges"))
         for h in pool:
-            h.edge, h.region = cues.verify(q, K, h.T_cam_from_obj)
+            h.terms = cues.verify_terms(q, K, h.T_cam_from_obj)
+            h.edge, h.region = h.terms["edge"], h.terms["region"]
             h.score = fused_score(sc, h.match_score, best_match, h.edge, h.region)
         pool.sort(key=lambda h: -h.score)
         timings["verify"] = time.perf_counter() - t
@@ -456,7 +458,8 @@ class PoseEstimator:
                 nh = Hypothesis(res.T_cam_from_obj, 0.0, h.n_inliers, h.n_matches, h.view, h.roll, 0.0,
                                 box_iou(projected_box(res.T_cam_from_obj, K, self._box_points), box), h.sim_sum,
                                 h.sim_mean, source="region", match_score=h.match_score)
-                nh.edge, nh.region = cues.verify(q, K, nh.T_cam_from_obj)
+                nh.terms = cues.verify_terms(q, K, nh.T_cam_from_obj)
+                nh.edge, nh.region = nh.terms["edge"], nh.terms["region"]
                 nh.score = fused_score(sc, nh.match_score, best_match, nh.edge, nh.region)
                 pool.append(nh)
             pool.sort(key=lambda h: -h.score)

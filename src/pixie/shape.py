@@ -150,24 +150,34 @@ class ShapeCues:
     # --------------------------------------------------------------------------------- verification
     def verify(self, q: EdgeQuery, K: np.ndarray, T: np.ndarray) -> tuple[float, float]:
         """Edge and region agreement of pose ``T`` with the query crop (rendered in the crop's own camera)."""
+        terms = self.verify_terms(q, K, T)
+        return terms["edge"], terms["region"]
+
+    def verify_terms(self, q: EdgeQuery, K: np.ndarray, T: np.ndarray) -> dict[str, float]:
+        """'edge' (weighted as in retrieval), 'silhouette' and 'crease' (mean response of those points; crease is
+        NaN without crease points) and 'region' agreement of pose ``T`` with the query crop."""
         size = q.resp.shape[1]
         Kc = crop_camera(K, q.crop.A)
         r = self.renderer.render(T, Kc, size, size)
         if r.mask.sum() < 10:
-            return 0.0, 0.5
+            return {"edge": 0.0, "silhouette": 0.0, "crease": float("nan"), "region": 0.5}
         vp = view_points(r.depth, r.normals, Kc, T, n_points=self.tpl.n_points)
         xy = vp["xy"] + Kc[:2, 2]
-        w = np.where(vp["kind"] == 1, self.crease_weight, 1.0)
+        crease = vp["kind"] == 1
+        w = np.where(crease, self.crease_weight, 1.0)
         b = orientation_bins(vp["ori"])
         H, W = size, size
         x = np.clip(np.rint(xy[:, 0]).astype(int), 0, W - 1)
         y = np.clip(np.rint(xy[:, 1]).astype(int), 0, H - 1)
         inside = (xy[:, 0] >= 0) & (xy[:, 0] < W) & (xy[:, 1] >= 0) & (xy[:, 1] < H)
-        e = float(np.sum(q.resp[b, y, x] * w * inside) / max(w.sum(), 1e-9))
+        resp = q.resp[b, y, x] * inside
         idx = colour_index(q.crop.image)
         mask = r.mask & q.valid
         reg = separation(idx, mask, band(mask, max(int(round(self.band * q.box_wh.max())), 2), q.valid), 512)
-        return e, reg
+        return {"edge": float(np.sum(resp * w) / max(w.sum(), 1e-9)),
+                "silhouette": float(resp[~crease].mean()) if (~crease).any() else 0.0,
+                "crease": float(resp[crease].mean()) if crease.any() else float("nan"),
+                "region": reg}
 
     # ----------------------------------------------------------------------------------- refinement
     def refine(self, image: np.ndarray, K: np.ndarray, T: np.ndarray, box_xyxy: np.ndarray, box_px: float = 96.0,
