@@ -38,7 +38,7 @@ from pixie.query import check_bbox  # noqa: E402
 
 NAMES = {1: "ape", 5: "can", 6: "cat", 8: "driller", 9: "duck", 10: "eggbox", 11: "glue", 12: "holepuncher"}
 RANKS = (1, 5, 24)
-TEMPLATE_VERSION = "t3"  # bump when pixie.contours changes what it stores
+TEMPLATE_VERSION = "t4"  # bump when pixie.contours changes what it stores
 
 
 def centred_rotation(T: np.ndarray, centre: np.ndarray) -> np.ndarray:
@@ -68,18 +68,15 @@ def template_errors(tpl, angles: np.ndarray, R_c: np.ndarray, syms) -> np.ndarra
 
 def cached_templates(objects, oid: int, views: int, size: int, points: int):
     """Templates of one object, built once and kept in out/bench/templates/ (build time kept from the build)."""
-    import dataclasses
-
     from pixie.contours import ContourTemplates
 
     path = REPO / f"out/bench/templates/{TEMPLATE_VERSION}_v{views}_s{size}_p{points}/obj_{oid:06d}.npz"
     if path.is_file():
         with np.load(path) as z:
-            return ContourTemplates(**{f.name: (z[f.name] if z[f.name].ndim else z[f.name].item())
-                                       for f in dataclasses.fields(ContourTemplates)})
+            return ContourTemplates.from_arrays({k: z[k] for k in z.files})
     tpl = build_templates(objects.mesh(oid), views, size, points, renderer=objects.renderer(oid))
     path.parent.mkdir(parents=True, exist_ok=True)
-    np.savez(path, **{f.name: getattr(tpl, f.name) for f in dataclasses.fields(ContourTemplates)})
+    np.savez(path, **tpl.to_arrays())
     return tpl
 
 

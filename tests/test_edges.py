@@ -100,3 +100,18 @@ def test_edge_search_on_a_real_lmo_photo(lmo_dataset):
     assert scores.min() >= 0 and scores.max() <= 1 and scores.max() > 0.5
     size = q.crop.image.shape[0]
     assert np.all((info["origin"] > 0) & (info["origin"] < size))
+
+
+def test_templates_are_stored_with_the_reference_set(proc_mesh, tmp_path):
+    """Templates kept in a reference set survive save/load exactly; a set without them loads None."""
+    from pixie.config import RefsConfig
+    from pixie.references import build_reference_set, load_reference_set, save_reference_set
+
+    refs = build_reference_set(proc_mesh, RefsConfig(n_fibonacci=2, rotations=1, size=64, encodings=["depth"]))
+    save_reference_set(refs, tmp_path / "plain.npz")
+    assert load_reference_set(tmp_path / "plain.npz").templates is None
+    refs.templates = build_templates(proc_mesh, n_views=10, size=64, n_points=32)
+    back = load_reference_set(save_reference_set(refs, tmp_path / "with.npz")).templates
+    for k, v in refs.templates.to_arrays().items():
+        np.testing.assert_array_equal(np.asarray(getattr(back, k)), v)
+    assert back.size == 64 and back.n_views == 10 and back.n_points == 32

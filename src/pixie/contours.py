@@ -96,6 +96,24 @@ class ContourTemplates:
         Rz[:2, :2] = [[c, -s], [s, c]]
         return Rz @ self.poses[view]
 
+    def to_arrays(self) -> dict[str, np.ndarray]:
+        """Every field as an array (for .npz storage)."""
+        import dataclasses
+
+        return {f.name: np.asarray(getattr(self, f.name)) for f in dataclasses.fields(self)}
+
+    @classmethod
+    def from_arrays(cls, arrays: dict) -> "ContourTemplates":
+        """Inverse of :meth:`to_arrays`."""
+        import dataclasses
+
+        kw = {}
+        for f in dataclasses.fields(cls):
+            v = np.asarray(arrays[f.name])
+            kw[f.name] = v.item() if v.ndim == 0 else v
+        kw["size"] = int(kw["size"])
+        return cls(**kw)
+
     def nbytes(self) -> int:
         return int(sum(a.nbytes for a in (self.poses, self.xy, self.ori, self.kind, self.xyz, self.outline)))
 

@@ -65,6 +65,7 @@ class ReferenceSet:
     encodings: dict[str, np.ndarray] = field(default_factory=dict)
     features: dict[str, dict[str, np.ndarray]] = field(default_factory=dict)
     build_seconds: float = 0.0
+    templates: object | None = None  # pixie.contours.ContourTemplates (edge templates), when built
     _xyz: np.ndarray | None = field(default=None, repr=False)
 
     @property
@@ -351,6 +352,8 @@ def save_reference_set(refs: ReferenceSet, path: str | Path) -> Path:
     for key, packed in refs.features.items():
         for k, v in packed.items():
             arrays[f"feat/{key}/{k}"] = v
+    if refs.templates is not None:
+        arrays.update({f"tpl/{k}": np.asarray(v) for k, v in refs.templates.to_arrays().items()})
     fd, tmp = tempfile.mkstemp(prefix=f".{path.stem}.", suffix=".npz.tmp", dir=parent)
     os.close(fd)
     try:
@@ -402,9 +405,20 @@ def load_reference_set(path: str | Path, mesh: Mesh | None = None) -> ReferenceS
             normals=_unit(data["normals_q"].astype(np.float32) / 127.0),
             encodings={k[4:]: v for k, v in data.items() if k.startswith("enc/")},
             features=feats, build_seconds=float(meta.get("build_seconds", 0.0)),
+            templates=_templates_from(data),
         )
     except (KeyError, TypeError) as exc:
         raise ReferenceSetError(f"{path} is missing data ({exc}): rebuild it") from exc
+
+
+def _templates_from(data: dict):
+    """Contour templates stored under 'tpl/' keys, or None."""
+    tpl = {k[4:]: v for k, v in data.items() if k.startswith("tpl/")}
+    if not tpl:
+        return None
+    from pixie.contours import ContourTemplates
+
+    return ContourTemplates.from_arrays(tpl)
 
 
 def _quantise_depth(depth: np.ndarray) -> dict[str, np.ndarray]:
