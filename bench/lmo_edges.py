@@ -32,7 +32,7 @@ sys.path.insert(0, str(REPO / "bench"))
 import lmo_pipeline as L  # noqa: E402
 
 from pixie.camera import rotation_angle_deg  # noqa: E402
-from pixie.contours import build_templates  # noqa: E402
+from pixie.contours import build_templates, distinct_by_rotation  # noqa: E402
 from pixie.edges import prepare_query, search, template_bank  # noqa: E402
 from pixie.query import check_bbox  # noqa: E402
 
@@ -114,6 +114,8 @@ def main(argv: list[str] | None = None) -> int:
     ap.add_argument("--near", type=float, default=20.0)
     ap.add_argument("--region-k", type=int, default=0, help="region-score the K best pairs by edges (saved for offline fusion)")
     ap.add_argument("--region-w", type=float, default=1.0, help="weight of (region - 0.5) added to the edge score")
+    ap.add_argument("--nms", type=float, default=0.0,
+                    help="top-N lists keep pairs more than this many degrees apart (0: distinct views, best roll each)")
     ap.add_argument("--band", type=float, default=0.15, help="region band width, fraction of the box's longer side")
     ap.add_argument("--set", action="append", default=[], dest="sets",
                     help="prepare_query / search keyword, e.g. box_px=64, spread=5, crease_weight=0.5")
@@ -126,7 +128,7 @@ def main(argv: list[str] | None = None) -> int:
     ds = L.BopDataset(args.dataset)
     objects = L.ObjectCache(ds)
     targets = L.select_targets(ds, args.max_targets)
-    tpls, build, banks = {}, {}, {}
+    tpls, build, banks, rots = {}, {}, {}, {}
     rows = []
     t_all = time.perf_counter()
     for i, t in enumerate(targets):
@@ -134,6 +136,7 @@ def main(argv: list[str] | None = None) -> int:
             tpls[t.obj_id] = cached_templates(objects, t.obj_id, args.views, args.size, args.points)
             build[t.obj_id] = tpls[t.obj_id].build_seconds
             banks[t.obj_id] = template_bank(tpls[t.obj_id], args.rolls, **bkw)
+            rots[t.obj_id] = tpls[t.obj_id].rotations(banks[t.obj_id].angles)
         tpl, bank = tpls[t.obj_id], banks[t.obj_id]
         g = L.gt_instance(ds, t)
         img = ds.load_rgb(t.scene_id, t.im_id)
@@ -156,11 +159,19 @@ def main(argv: list[str] | None = None) -> int:
             extra = {"cand_edge": edge_top.tolist(), "cand_region": reg.tolist(),
                      "cand_err": err[v_i, a_i].tolist(), "cand_view": v_i.tolist()}
         dt = time.perf_counter() - t0
-        best_roll = np.argmax(scores, axis=1)
-        vscore = scores[np.arange(len(scores)), best_roll]
-        verr = err[np.arange(len(scores)), best_roll]
-        order = np.argsort(-vscore, kind="stable")
-        good = np.nonzero(verr[order] < args.near)[0]
+        if args.nms > 0:
+            flat_order = np.argsort(-scores.ravel(), kind="stable")[:2000]
+            keep = distinct_by_rotation(rots[t.obj_id].reshape(-1, 3, 3), flat_order, max(RANKS), args.nms)
+            verr_sel = err.ravel()[keep]
+            good = np.nonzero(verr_sel < args.near)[0]
+            verr, order = verr_sel, np.arange(len(keep))
+            vscore = scores.ravel()[keep]
+        else:
+            best_roll = np.argmax(scores, axis=1)
+            vscore = scores[np.arange(len(scores)), best_roll]
+            verr = err[np.arange(len(scores)), best_roll]
+            order = np.argsort(-vscore, kind="stable")
+            good = np.nonzero(verr[order] < args.near)[0]
         pair_order = np.argsort(-scores.ravel(), kind="stable")
         rows.append({"scene_id": t.scene_id, "im_id": t.im_id, "obj_id": t.obj_id, "visib": g.visib_fract,
                      "rank": int(good[0]) if len(good) else None, "top1_err": float(verr[order[0]]),

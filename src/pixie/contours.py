@@ -96,6 +96,14 @@ class ContourTemplates:
         Rz[:2, :2] = [[c, -s], [s, c]]
         return Rz @ self.poses[view]
 
+    def rotations(self, angles: np.ndarray) -> np.ndarray:
+        """(V, A, 3, 3) rotations of every view rolled by each angle."""
+        a = np.asarray(angles, np.float64)
+        c, s = np.cos(a), np.sin(a)
+        Rz = np.zeros((len(a), 3, 3))
+        Rz[:, 0, 0], Rz[:, 0, 1], Rz[:, 1, 0], Rz[:, 1, 1], Rz[:, 2, 2] = c, -s, s, c, 1.0
+        return np.einsum("aij,vjk->vaik", Rz, self.poses[:, :3, :3])
+
     def to_arrays(self) -> dict[str, np.ndarray]:
         """Every field as an array (for .npz storage)."""
         import dataclasses
@@ -116,6 +124,21 @@ class ContourTemplates:
 
     def nbytes(self) -> int:
         return int(sum(a.nbytes for a in (self.poses, self.xy, self.ori, self.kind, self.xyz, self.outline)))
+
+
+def distinct_by_rotation(R: np.ndarray, order: np.ndarray, k: int, min_deg: float) -> list[int]:
+    """The first ``k`` indices of ``order`` whose rotations ``R[i]`` are more than ``min_deg`` from every one kept."""
+    kept: list[int] = []
+    cmin = np.cos(np.radians(min_deg))
+    for i in order:
+        if kept:
+            tr = np.einsum("kij,ij->k", R[kept], R[i])
+            if np.any((tr - 1) / 2 > cmin):
+                continue
+        kept.append(int(i))
+        if len(kept) >= k:
+            break
+    return kept
 
 
 def template_view_poses(mesh: Mesh, n_views: int, focal_px: float, size: int, fill: float = 0.8) -> np.ndarray:

@@ -21,7 +21,7 @@ from dataclasses import dataclass
 import numpy as np
 
 from pixie.camera import make_T
-from pixie.contours import ContourTemplates, view_points
+from pixie.contours import ContourTemplates, distinct_by_rotation, view_points
 from pixie.edges import EdgeQuery, orientation_bins, prepare_query, search, template_bank
 from pixie.mesh import Mesh
 from pixie.query import square_crop
@@ -76,10 +76,13 @@ class ShapeCues:
     region_k : best (view, roll) pairs by edges that get a region score before ranking
     region_weight : fused score = edge + region_weight * (region - 0.5)
     band : region band width, fraction of the query box's longer side
+    nms_deg : retrieved candidates are more than this apart in rotation (15: top-5 recall +4 points on 96 LM-O
+        targets against one per view)
     """
 
     def __init__(self, mesh: Mesh, templates: ContourTemplates, n_rolls: int = 36, crease_weight: float = 0.5,
-                 query_kw: dict | None = None, region_k: int = 300, region_weight: float = 1.0, band: float = 0.15):
+                 query_kw: dict | None = None, region_k: int = 300, region_weight: float = 1.0, band: float = 0.15,
+                 nms_deg: float = 15.0):
         self.mesh = mesh
         self.tpl = templates
         self.bank = template_bank(templates, n_rolls, crease_weight)
@@ -88,6 +91,8 @@ class ShapeCues:
         self.region_k = int(region_k)
         self.region_weight = float(region_weight)
         self.band = float(band)
+        self.nms_deg = float(nms_deg)
+        self._rot = templates.rotations(self.bank.angles)[self.bank.views]  # (V, A, 3, 3) template rotations
         self._renderer: Renderer | None = None
         # distance of each template camera to the object centre
         c = templates.poses[:, :3, :3] @ mesh.center + templates.poses[:, :3, 3]
@@ -118,25 +123,21 @@ class ShapeCues:
         return make_T(R, C - R @ self.mesh.center)
 
     def retrieve(self, q: EdgeQuery, K: np.ndarray, k: int = 24) -> list[ShapeCandidate]:
-        """The ``k`` best distinct template views (best roll each) by fused edge + region score, as photo poses."""
+        """The ``k`` best templates by fused edge + region score, more than ``nms_deg`` apart, as photo poses."""
         scores, info = search(self.bank, q)
         flat = scores.ravel()
         top = np.argsort(-flat, kind="stable")[: max(self.region_k, k)]
         v_i, a_i = np.unravel_index(top, scores.shape)
         reg = self.region_scores(q, info, v_i, a_i) if self.region_weight > 0 else np.full(len(top), 0.5)
         fused = flat[top] + self.region_weight * (reg - 0.5)
+        order = np.argsort(-fused, kind="stable")
+        keep = distinct_by_rotation(self._rot[v_i, a_i], order, k, self.nms_deg)
         out: list[ShapeCandidate] = []
-        seen: set[int] = set()
-        for j in np.argsort(-fused, kind="stable"):
+        for j in keep:
             v = int(info["views"][v_i[j]])
-            if v in seen:
-                continue
-            seen.add(v)
             ang = float(info["angles"][a_i[j]])
             T = self.template_pose(q, K, v, ang, float(info["scale"][v_i[j], a_i[j]]), info["origin"][v_i[j], a_i[j]])
             out.append(ShapeCandidate(T, v, ang, float(flat[top[j]]), float(reg[j])))
-            if len(out) >= k:
-                break
         return out
 
     def region_scores(self, q: EdgeQuery, info: dict, v_i: np.ndarray, a_i: np.ndarray) -> np.ndarray:
