@@ -131,7 +131,7 @@ def _line_targets(pf_img: np.ndarray, pts: np.ndarray, nrm: np.ndarray, reach: i
     return (offs[k[j]] - 1.0 + np.clip(sub, -0.5, 0.5)).astype(np.float64), b
 
 
-def refine_pose(renderer: Renderer, T0: np.ndarray, K: np.ndarray, image: np.ndarray, iterations: int = 8,
+def refine_pose(renderer: Renderer, T0: np.ndarray, K: np.ndarray, image: np.ndarray, iterations: int = 4,
                 reach: tuple[int, ...] | int = (16, 8, 4), step: int = 3, band_px: int | None = None, bits: int = 3,
                 min_strength: float = 0.15, damping: float = 1e-3, valid: np.ndarray | None = None) -> RegionRefineResult:
     """Region-based 6-DoF refinement of ``T0`` in ``image`` (intrinsics ``K``; crop images work with crop K).
