@@ -209,28 +209,22 @@ def edge_map(depth: np.ndarray, normals: np.ndarray, crease_deg: float = 35.0,
 
 
 def spread_points(pts: np.ndarray, score: np.ndarray, n: int, min_dist: float, min_dist_floor: float | None = None) -> np.ndarray:
-    """Indices of up to ``n`` points, strongest first, no two closer than ``min_dist``.
-
-    The distance shrinks (x0.75) until ``n`` points fit or it falls below ``min_dist_floor`` (default min_dist / 2).
-    """
-    order = np.argsort(-score, kind="stable")
-    chosen: list[int] = []
+    """Indices of up to ``n`` points, strongest first, about ``min_dist`` apart (the strongest point of each
+    ``min_dist`` grid cell; the cell shrinks x0.75 until ``n`` points are found or it falls below
+    ``min_dist_floor``, default min_dist / 2)."""
+    if len(pts) == 0 or n <= 0:
+        return np.zeros(0, dtype=int)
     d = float(min_dist)
     floor = 0.5 * d if min_dist_floor is None else float(min_dist_floor)
-    while d >= floor and len(chosen) < n:
-        chosen = []
-        taken = np.zeros(0, dtype=int)
-        for i in order:
-            if len(taken) and np.min(np.sum((pts[taken] - pts[i]) ** 2, axis=1)) < d * d:
-                continue
-            chosen.append(int(i))
-            taken = np.asarray(chosen)
-            if len(chosen) >= n:
-                break
-        if len(chosen) >= n:
-            break
+    order = np.argsort(-score, kind="stable")
+    while True:
+        cell = np.floor(pts[order] / d).astype(np.int64)
+        key = cell[:, 0] * 1_000_003 + cell[:, 1]
+        _, first = np.unique(key, return_index=True)  # first = strongest point of each cell
+        chosen = order[np.sort(first)]
+        if len(chosen) >= n or d * 0.75 < floor:
+            return chosen[:n]
         d *= 0.75
-    return np.asarray(chosen[:n], dtype=int)
 
 
 def view_points(depth: np.ndarray, normals: np.ndarray, K: np.ndarray, T: np.ndarray, n_points: int = 96,
