@@ -119,6 +119,7 @@ class ShapeConfig:
     w_match: float = 0.5
     w_edge: float = 1.0
     w_region: float = 1.0
+    before_render: bool = False  # verify before render-at-estimate refinement (which then refines the best fused)
     refine_hypotheses: int = 0  # best verified hypotheses refined by region-based refinement (pixie.region)
     refine_box_px: float = 96.0  # refinement crop: the box's longer side in px
 

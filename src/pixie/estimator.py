@@ -175,12 +175,19 @@ class PoseEstimator:
         hyps = self._view_selection(hyps, crops, qfeats, K, box, image, use_mask)
         timings["view_selection"] = time.perf_counter() - t
 
+        shape_first = self._shape is not None and self.cfg.shape.before_render
+        if shape_first:  # fused ranking chooses what render refinement refines
+            hyps, edge_q, best_match = self._shape_stage(hyps, image, K, box, timings)
         if self.cfg.refine.render_iters > 0 and hyps:
             t = time.perf_counter()
             hyps = self._render_refine(hyps, crops[0], qfeats[0], K, box)
             timings["render_refine"] = time.perf_counter() - t
-        if self._shape is not None:
-            hyps = self._shape_stage(hyps, image, K, box, timings)
+        if shape_first:
+            t = time.perf_counter()
+            hyps = self._shape_verify(hyps, edge_q, K, best_match)
+            timings["verify"] += time.perf_counter() - t
+        elif self._shape is not None:
+            hyps = self._shape_stage(hyps, image, K, box, timings)[0]
         timings["total"] = time.perf_counter() - t_all
         return self._result(hyps, box, K, timings)
 
@@ -426,11 +433,10 @@ class PoseEstimator:
             out.append(Hypothesis(T, 0.0, 0, 0, v, r, 0.0, 0.0, source="seed"))
         return out
 
-    def _shape_stage(self, hyps: list[Hypothesis], image, K, box, timings: dict) -> list[Hypothesis]:
-        """Shape cues (``config.shape``): add the best edge-template poses, verify every candidate by edge and
-        region agreement, re-rank by the fused score and region-refine the best few."""
-        from pixie.shape import fused_score
-
+    def _shape_stage(self, hyps: list[Hypothesis], image, K, box, timings: dict) -> tuple[list[Hypothesis], object, float]:
+        """Shape cues (``config.shape``): add the best edge-template poses to the best distinct matcher hypotheses,
+        verify every candidate by edge and region agreement, re-rank by the fused score and region-refine the best
+        few. Returns the ranked pool, the edge query (for later verification) and the matcher score scale."""
         sc, cues = self.cfg.shape, self._shape
         t = time.perf_counter()
         q = cues.query(image, box)
@@ -439,32 +445,36 @@ class PoseEstimator:
         t = time.perf_counter()
         best_match = max([h.score for h in hyps], default=0.0)
         pool = self._distinct(hyps, sc.verify_matcher)
-        for h in pool:
-            h.match_score = h.score
         for c in cands:
             T = depth_from_box(c.T_cam_from_obj, K, self._box_points, box) if self.cfg.pose.depth_from_bbox else c.T_cam_from_obj
             pool.append(Hypothesis(T, 0.0, 0, 0, -1, -1, 0.0, box_iou(projected_box(T, K, self._box_points), box),
                                    source="edges"))
-        for h in pool:
-            h.terms = cues.verify_terms(q, K, h.T_cam_from_obj)
-            h.edge, h.region = h.terms["edge"], h.terms["region"]
-            h.score = fused_score(sc, h.match_score, best_match, h.edge, h.region)
-        pool.sort(key=lambda h: -h.score)
+        pool = self._shape_verify(pool, q, K, best_match)
         timings["verify"] = time.perf_counter() - t
         if sc.refine_hypotheses > 0:
             t = time.perf_counter()
             for h in self._distinct(pool, sc.refine_hypotheses):
                 res = cues.refine(image, K, h.T_cam_from_obj, box, sc.refine_box_px)
-                nh = Hypothesis(res.T_cam_from_obj, 0.0, h.n_inliers, h.n_matches, h.view, h.roll, 0.0,
-                                box_iou(projected_box(res.T_cam_from_obj, K, self._box_points), box), h.sim_sum,
-                                h.sim_mean, source="region", match_score=h.match_score)
-                nh.terms = cues.verify_terms(q, K, nh.T_cam_from_obj)
-                nh.edge, nh.region = nh.terms["edge"], nh.terms["region"]
-                nh.score = fused_score(sc, nh.match_score, best_match, nh.edge, nh.region)
-                pool.append(nh)
-            pool.sort(key=lambda h: -h.score)
+                pool.append(Hypothesis(res.T_cam_from_obj, h.match_score, h.n_inliers, h.n_matches, h.view, h.roll,
+                                       0.0, box_iou(projected_box(res.T_cam_from_obj, K, self._box_points), box),
+                                       h.sim_sum, h.sim_mean, source="region"))
+            pool = self._shape_verify(pool, q, K, best_match)
             timings["region_refine"] = time.perf_counter() - t
-        return pool
+        return pool, q, best_match
+
+    def _shape_verify(self, hyps: list[Hypothesis], q, K, best_match: float) -> list[Hypothesis]:
+        """Verify the hypotheses not yet verified (their ``score`` is the matcher's) and rank all by fused score."""
+        from pixie.shape import fused_score
+
+        sc = self.cfg.shape
+        for h in hyps:
+            if h.terms:
+                continue
+            h.match_score = h.score if h.source != "edges" else 0.0
+            h.terms = self._shape.verify_terms(q, K, h.T_cam_from_obj)
+            h.edge, h.region = h.terms["edge"], h.terms["region"]
+            h.score = fused_score(sc, h.match_score, best_match, h.edge, h.region)
+        return sorted(hyps, key=lambda h: -h.score)
 
     @staticmethod
     def _distinct(hyps: list[Hypothesis], n: int, min_deg: float = 10.0) -> list[Hypothesis]:
