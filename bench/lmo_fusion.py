@@ -56,8 +56,16 @@ def main(argv=None) -> int:
     ap = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
     ap.add_argument("targets", type=Path)
     ap.add_argument("--out", type=Path, default=Path("out/bench/lmo_fusion.json"))
+    ap.add_argument("--max-matcher", type=int, default=0, help="keep the N best matcher hypotheses only (0: all)")
+    ap.add_argument("--max-edges", type=int, default=0,
+                    help="keep the N best edge hypotheses (by verified edge + region - 0.5) only (0: all)")
     args = ap.parse_args(argv)
     recs = load(args.targets)
+    for r in recs:
+        m = sorted([h for h in r["hyps"] if h["source"] != "edges"], key=lambda h: -(h["match_score"] or 0.0))
+        e = sorted([h for h in r["hyps"] if h["source"] == "edges"],
+                   key=lambda h: -((h["edge"] or 0.0) + (h["region"] or 0.5) - 0.5))
+        r["hyps"] = (m[: args.max_matcher] if args.max_matcher else m) + (e[: args.max_edges] if args.max_edges else e)
     n = len(recs)
     matcher_only = []
     for r in recs:
