@@ -38,7 +38,7 @@ from pixie.query import check_bbox  # noqa: E402
 
 NAMES = {1: "ape", 5: "can", 6: "cat", 8: "driller", 9: "duck", 10: "eggbox", 11: "glue", 12: "holepuncher"}
 RANKS = (1, 5, 24)
-TEMPLATE_VERSION = "t5"  # bump when pixie.contours changes what it stores
+TEMPLATE_VERSION = "t6"  # bump when pixie.contours changes what it stores
 
 
 def centred_rotation(T: np.ndarray, centre: np.ndarray) -> np.ndarray:

@@ -25,7 +25,7 @@ def test_ray_rotation_takes_the_axis_onto_the_ray():
 
 def test_retrieved_template_pose_is_near_the_photo_pose(proc_mesh):
     """Off-centre photos of the part: the best candidate's rotation is within 15° and its object centre within
-    8 % of the distance (template scale) of the truth, and verification prefers it to a 180°-turned pose."""
+    12 % of the distance (template scale) of the truth, and verification prefers it to a 180°-turned pose."""
     from pixie.synth.photo import Material, random_background, render_rgb
 
     from conftest import pose_facing
@@ -44,7 +44,7 @@ def test_retrieved_template_pose_is_near_the_photo_pose(proc_mesh):
         rot = rotation_angle_deg(best.T_cam_from_obj[:3, :3], T[:3, :3])
         c_est = best.T_cam_from_obj[:3, :3] @ proc_mesh.center + best.T_cam_from_obj[:3, 3]
         c_true = T[:3, :3] @ proc_mesh.center + T[:3, 3]
-        near = np.linalg.norm(c_est - c_true) / c_true[2] < 0.08
+        near = np.linalg.norm(c_est - c_true) / c_true[2] < 0.12  # template scale: a 10° view step moves the box
         flipped = best.T_cam_from_obj.copy()
         flipped[:3, :3] = best.T_cam_from_obj[:3, :3] @ np.diag([-1.0, 1.0, -1.0])  # turned 180° about the y axis
         flipped[:3, 3] = c_est - flipped[:3, :3] @ proc_mesh.center

@@ -78,7 +78,8 @@ class ContourTemplates:
         -------
         xy : (V, A, N, 2) offsets from the principal point
         ori : (V, A, N) orientations in [0, pi)
-        boxes : (V, A, 4) x0, y0, x1, y1 of the rolled outline, offsets from the principal point
+        boxes : (V, A, 4) x0, y0, x1, y1 of the rolled outline grown by half a pixel (pixel-count extent),
+            offsets from the principal point
         """
         a = np.asarray(angles, np.float64).reshape(-1)
         c, s = np.cos(a), np.sin(a)
@@ -86,7 +87,9 @@ class ContourTemplates:
         xy = np.einsum("aij,vnj->vani", R, self.xy)
         ori = np.mod(self.ori[:, None, :] + a[None, :, None].astype(np.float32), np.pi).astype(np.float32)
         out = np.einsum("aij,vmj->vami", R, self.outline)
-        boxes = np.concatenate([out.min(axis=2), out.max(axis=2)], axis=-1)
+        # outline points are pixel centres: the silhouette covers half a pixel more on every side (pixie boxes
+        # count pixels, w = last - first + 1)
+        boxes = np.concatenate([out.min(axis=2) - 0.5, out.max(axis=2) + 0.5], axis=-1)
         return xy.astype(np.float32), ori, boxes.astype(np.float32)
 
     def pose(self, view: int, angle: float) -> np.ndarray:
