@@ -1,15 +1,19 @@
 # Two commands a fresh machine needs: `make demo` and `make test`.
+# Both install exactly the versions locked in constraints.txt (refresh it with `make lock`).
 PY ?= python3
 VENV := .venv
 BIN := $(VENV)/bin
 STAMP := $(VENV)/.installed
+PIP_VERSION := 26.3
+EXTRAS := test,synth
 
-.PHONY: demo test setup clean bench
+.PHONY: demo test setup clean bench lock
 
 $(STAMP): pyproject.toml constraints.txt
 	$(PY) -m venv $(VENV)
-	$(BIN)/pip install -q --upgrade pip
-	$(BIN)/pip install -q -c constraints.txt -e ".[test,poselib,synth]"
+	$(BIN)/pip install -q "pip==$(PIP_VERSION)"
+	$(BIN)/pip install -q -c constraints.txt -e ".[$(EXTRAS)]"
+	$(BIN)/pip check
 	touch $(STAMP)
 
 setup: $(STAMP)
@@ -19,6 +23,19 @@ demo: $(STAMP)
 
 test: $(STAMP)
 	$(BIN)/python -m pytest -q
+
+# Re-resolve every dependency from pyproject.toml (only torch pinned) in a throw-away venv and write
+# the full lock to constraints.txt. Review the diff, run `make clean test`, and commit it.
+lock:
+	rm -rf .lockenv
+	$(PY) -m venv .lockenv
+	.lockenv/bin/pip install -q "pip==$(PIP_VERSION)"
+	.lockenv/bin/pip install -q "torch==2.13.0" -e ".[$(EXTRAS)]"
+	{ echo "# Full lock of every dependency pixie installs (make lock; $$(date -u +%F), Python $$($(PY) -c 'import platform; print(platform.python_version())'))."; \
+	  echo "# torch stays 2.13.0: on the project machines that is the local CPU wheel; any other spec pulls CUDA builds."; \
+	  .lockenv/bin/pip freeze --exclude-editable | grep -v '^#' | sed 's/^torch==2.13.0+.*/torch==2.13.0/'; } > constraints.txt.tmp
+	mv constraints.txt.tmp constraints.txt
+	rm -rf .lockenv
 
 clean:
 	rm -rf $(VENV) out

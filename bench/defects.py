@@ -53,10 +53,16 @@ import numpy as np
 REPO = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(REPO / "src"))
 
-from pixie import metrics as M  # noqa: E402
 from pixie.config import PixieConfig  # noqa: E402
-from pixie.datasets import BopDataset, PoseEstimate, Target, symmetry_transforms, write_results_csv  # noqa: E402
+from pixie.errors import PixieError  # noqa: E402
+from pixie.estimator import PoseEstimator  # noqa: E402
+from pixie.eval import ObjectData, evaluate  # noqa: E402
+from pixie.eval import errors as M  # noqa: E402
+from pixie.eval.datasets import BopDataset, PoseEstimate, Target, symmetry_transforms, write_results_csv  # noqa: E402
+from pixie.eval.shape import aps  # noqa: E402
 from pixie.mesh import Mesh, load_mesh  # noqa: E402
+from pixie.render import Renderer  # noqa: E402
+from pixie.runner import Journal, cached_reference_set, make_matcher, reference_cache_path  # noqa: E402
 
 DEFAULT_DATA = REPO / "out/bench/defects_data"
 DEFAULT_OUT = REPO / "out/bench/defects"
@@ -116,50 +122,31 @@ class Models:
         return self._mesh[path]
 
     def renderer(self, path: Path):
-        from pixie.render import Renderer
-
         if path not in self._ren:
             self._ren[path] = Renderer(self.mesh(path))
         return self._ren[path]
 
     def matcher(self, cfg: PixieConfig):
-        from pixie.matching import get_matcher
-
+        """The configured matcher (:func:`pixie.runner.make_matcher`: detection threshold and all), one per setting."""
         m = cfg.match
-        key = (m.matcher, m.max_keypoints, m.window, m.weights_dir, m.device, cfg.refs.size)
+        key = (m.matcher, m.max_keypoints, m.detection_threshold, m.window, m.weights_dir, m.device, cfg.refs.size)
         if key not in self._matcher:
-            window = None if m.window is None else m.window * cfg.refs.size
-            self._matcher[key] = get_matcher(m.matcher, device=m.device, weights=m.weights_dir,
-                                             max_keypoints=m.max_keypoints,
-                                             **({"window": window} if m.matcher.endswith("-nn") else {}))
+            self._matcher[key] = make_matcher(cfg)
         return self._matcher[key]
 
     def refs(self, path: Path, cfg: PixieConfig):
-        """Reference set of a model with *all* encodings of ``cfg.refs`` (ablations pick a subset)."""
-        from pixie.references import build_reference_set, load_reference_set, save_reference_set
-
+        """Reference set of a model with *all* encodings of ``cfg.refs`` (ablations pick a subset), cached on disk
+        by :func:`pixie.runner.cached_reference_set`."""
         mesh = self.mesh(path)
-        rc = cfg.to_dict()["refs"]
-        key = _hash({"mesh": mesh.source_hash, "refs": rc, "matcher": cfg.match.matcher, "kp": cfg.match.max_keypoints,
-                     "w": cfg.match.weights_dir})
+        key = reference_cache_path(mesh, cfg, self.refs_dir)
         if key not in self._refs:
-            f = self.refs_dir / f"{path.parent.name}-{path.stem}-{key}.npz"
-            if f.is_file():
-                refs = load_reference_set(f, mesh=mesh)
-            else:
-                t0 = time.perf_counter()
-                refs = build_reference_set(mesh, cfg.refs, matcher=self.matcher(cfg))
-                f.parent.mkdir(parents=True, exist_ok=True)
-                save_reference_set(refs, f)
-                self.echo(f"  references of {path.parent.name}/{path.name}: {refs.n_views} views "
-                          f"in {time.perf_counter() - t0:.0f} s")
+            refs = cached_reference_set(mesh, cfg, self.refs_dir, matcher=self.matcher(cfg),
+                                        echo=lambda msg: self.echo(f"  {path.parent.name}/{path.name}: {msg}"))
             self.build_seconds[f"{path.parent.name}/{path.stem}"] = float(getattr(refs, "build_seconds", 0.0) or 0.0)
             self._refs[key] = refs
         return self._refs[key]
 
     def estimator(self, path: Path, cfg: PixieConfig):
-        from pixie.estimator import PoseEstimator
-
         key = (path, _hash(cfg.to_dict()))
         if key not in self._est:
             if len(self._est) > 6:  # bound memory: drop the oldest
@@ -168,28 +155,17 @@ class Models:
         return self._est[key]
 
 
-def run_key(cfg: PixieConfig, model_path: Path, root: Path, tg: Target) -> str:
+def run_key(cfg: PixieConfig, model_path: Path, root: Path, tg: Target, det_threshold: float) -> str:
+    """Cache key of one estimate. ``det_threshold`` is the threshold the matcher really uses: estimates cached
+    before this script took its matcher from the config (ALIKED at its own 0.2, not the configured 0.0) differ."""
     return _hash({"cfg": cfg.to_dict(), "model": str(model_path.relative_to(root)), "t": [tg.scene_id, tg.im_id],
-                  "data": json.loads((root / "table1.json").read_text()).get("params")})
-
-
-def load_cache(path: Path) -> dict:
-    out = {}
-    if path.is_file():
-        for line in path.read_text().splitlines():
-            try:
-                d = json.loads(line)
-                out[d["key"]] = d
-            except (json.JSONDecodeError, KeyError):
-                continue
-    return out
+                  "data": json.loads((root / "table1.json").read_text()).get("params"), "det": det_threshold})
 
 
 def estimate_all(name: str, ds: BopDataset, variants: dict[int, dict], cfg: PixieConfig, model_kind: str,
-                 models: Models, cache: dict, cache_file: Path, echo=print, reuse: dict | None = None) -> list[dict]:
-    """One estimate per target. ``model_kind``: 'target' or 'defective' (the physical model)."""
-    from pixie.errors import PixieError
-
+                 models: Models, cache: Journal, echo=print, reuse: dict | None = None) -> list[dict]:
+    """One estimate per target. ``model_kind``: 'target' or 'defective' (the physical model). ``cache`` is the
+    resumable journal of estimates (keyed by :func:`run_key`)."""
     rows = []
     root = ds.root
     targets = ds.targets()
@@ -198,7 +174,7 @@ def estimate_all(name: str, ds: BopDataset, variants: dict[int, dict], cfg: Pixi
         v = variants[tg.scene_id]
         phys = physical_model_path(root, v)
         model = root / "models" / f"obj_{tg.obj_id:06d}.ply" if model_kind == "target" else phys
-        key = run_key(cfg, model, root, tg)
+        key = run_key(cfg, model, root, tg, models.matcher(cfg).extractor.threshold)
         if key not in cache:
             if reuse is not None and model_kind == "defective" and v["defect_index"] == 0 and (tg.scene_id, tg.im_id) in reuse:
                 rec = dict(reuse[(tg.scene_id, tg.im_id)])
@@ -217,10 +193,8 @@ def estimate_all(name: str, ds: BopDataset, variants: dict[int, dict], cfg: Pixi
                 rec = dict(key=key, scene_id=tg.scene_id, im_id=tg.im_id, obj_id=tg.obj_id,
                            T=None if T is None else np.asarray(T).tolist(), score=score, failed=failed,
                            message=msg, time=time.perf_counter() - t0)
-            cache[key] = rec
-            with open(cache_file, "a") as fh:
-                fh.write(json.dumps(rec) + "\n")
-        rec = dict(cache[key])
+            cache.append(rec)
+        rec = dict(cache.get(key))
         rec["model"] = str(model.relative_to(root))
         rec["physical"] = str(phys.relative_to(root))
         rows.append(rec)
@@ -233,8 +207,6 @@ def estimate_all(name: str, ds: BopDataset, variants: dict[int, dict], cfg: Pixi
 
 
 def object_data(obj_id: int, mesh: Mesh, n_points: int = 2000):
-    from pixie.eval import ObjectData
-
     pts = np.asarray(mesh.vertices, dtype=np.float64)
     idx = np.random.default_rng(obj_id).choice(len(pts), size=min(n_points, len(pts)), replace=False)
     return ObjectData(obj_id=obj_id, diameter=float(mesh.diameter), symmetric=False, syms=symmetry_transforms({}),
@@ -254,7 +226,7 @@ def score_rows(rows: list[dict], ds: BopDataset, models: Models, variants: dict[
         T = np.asarray(r["T"])
         pts = models.mesh(phys).sample_points(2000, seed=1)
         r["add_mm"] = float(M.add(T, inst.T_cam_from_obj, pts))
-        r["aps"] = float(M.aps(models.renderer(ds.root / r["model"]), models.renderer(phys), T, inst.T_cam_from_obj, K, h, w))
+        r["aps"] = float(aps(models.renderer(ds.root / r["model"]), models.renderer(phys), T, inst.T_cam_from_obj, K, h, w))
         r["rot_err_deg"] = float(M.rotation_error_deg(T, inst.T_cam_from_obj))
 
 
@@ -265,8 +237,6 @@ def ar_physical(rows: list[dict], ds: BopDataset, variants: dict[int, dict], mod
     AR averages over targets, so the per-scene results combine exactly by target counts.
     Returns {scene_id: {AR, AR_MSSD, AR_MSPD, AR_VSD, n}}.
     """
-    from pixie.eval import evaluate
-
     ests = [PoseEstimate(r["scene_id"], r["im_id"], r["obj_id"], r["score"], np.asarray(r["T"]), r.get("time", -1.0))
             for r in rows if r["T"] is not None and not r["failed"]]
     out = {}
@@ -434,8 +404,7 @@ def main(argv=None) -> int:
     base = PixieConfig().apply_overrides(overrides)
     n_views = int(base.refs.n_fibonacci) + (6 if base.refs.canonical else 0)
     models = Models(args.data, args.out / "refs")
-    cache_file = args.out / "estimates.jsonl"
-    cache = load_cache(cache_file)
+    cache = Journal(args.out / "estimates.jsonl", key=lambda rec: rec["key"])
 
     runs: list[tuple[str, str, PixieConfig]] = [("PIXIE", "target", base)]
     runs.append(("PIXIE", "defective", base))
@@ -455,15 +424,13 @@ def main(argv=None) -> int:
         if label.startswith("PIXIE - "):
             est_cfg = PixieConfig.from_dict(cfg.to_dict())
             est_cfg.refs.encodings = ABLATIONS[label[len("PIXIE - "):]]
-        rows = _run_with_full_refs(name, ds, variants, cfg, est_cfg, kind, models, cache, cache_file, reuse)
+        rows = _run_with_full_refs(name, ds, variants, cfg, est_cfg, kind, models, cache, reuse)
         if label == "PIXIE" and kind == "target":
             reuse = {(r["scene_id"], r["im_id"]): r for r in rows}
         score_rows(rows, ds, models, variants)
         ar = ar_physical(rows, ds, variants, models)
         ar_bop = None
         if kind == "target":
-            from pixie.eval import evaluate
-
             ests = [PoseEstimate(r["scene_id"], r["im_id"], r["obj_id"], r["score"], np.asarray(r["T"]), r["time"])
                     for r in rows if r["T"] is not None and not r["failed"]]
             ar_bop = evaluate(ds, ests, metrics=("mssd", "mspd", "vsd")).overall.get("AR")
@@ -538,7 +505,7 @@ than 150° (the near-symmetric base plates invite 180° flips); failed = no pose
     return 0
 
 
-def _run_with_full_refs(name, ds, variants, ref_cfg, est_cfg, kind, models, cache, cache_file, reuse):
+def _run_with_full_refs(name, ds, variants, ref_cfg, est_cfg, kind, models, cache, reuse):
     """Estimates with references built from ``ref_cfg`` (all encodings) and an estimator on ``est_cfg``."""
     orig = models.refs
 
@@ -547,7 +514,7 @@ def _run_with_full_refs(name, ds, variants, ref_cfg, est_cfg, kind, models, cach
 
     models.refs = refs_full
     try:
-        return estimate_all(name, ds, variants, est_cfg, kind, models, cache, cache_file, reuse=reuse)
+        return estimate_all(name, ds, variants, est_cfg, kind, models, cache, reuse=reuse)
     finally:
         models.refs = orig
 

@@ -25,7 +25,7 @@ from pathlib import Path
 REPO = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(REPO / "src"))
 
-from pixie.datasets import BopDataset, gt_as_estimates  # noqa: E402
+from pixie.eval.datasets import BopDataset, gt_as_estimates  # noqa: E402
 from pixie.eval import DEFAULT_METRICS, evaluate, format_table  # noqa: E402
 
 DEFAULT_DATASET = REPO.parent / "shared/data/lmo_dev/lmo"

@@ -78,7 +78,7 @@ def cmd_train(args) -> int:
 
 
 def cmd_ship(args) -> int:
-    from pixie.adapter import DescriptorAdapter, shipped_adapter_path
+    from pixie.matching.adapter import DescriptorAdapter, shipped_adapter_path
     from pixie.train.finetune import load_checkpoint, save_adapter
 
     ck = load_checkpoint(Path(args.run) / ("best.pt" if args.best else "last.pt"))
@@ -103,7 +103,7 @@ class CachedAliked:
                  detection_threshold: float | None = None):
         import torch
 
-        from pixie.matching import AlikedExtractor
+        from pixie.matching.aliked import AlikedExtractor
 
         self.cache_dir = Path(cache_dir)
         self.cache_dir.mkdir(parents=True, exist_ok=True)
@@ -138,8 +138,8 @@ class CachedAliked:
         else:
             self._inner = self._inner or self._factory()
             if self.grid and mask is not None:
-                from pixie.adapter import aliked_extract
-                from pixie.matching import check_image
+                from pixie.matching.adapter import aliked_extract
+                from pixie.geometry import check_image
 
                 img = check_image(image)
                 kp, desc, sc, _ = aliked_extract(self._inner.net, img, np.asarray(mask, bool), self.grid)
@@ -160,7 +160,7 @@ class CachedAliked:
 def oracle_matchers(names: list[str], window: float, cache_dir: Path, adapter_path=None):
     import torch
 
-    from pixie.adapter import load_adapter
+    from pixie.matching.adapter import load_adapter
     from pixie.matching import LightGlueAssigner, Matcher, MutualNNAssigner, build_lightglue
     from pixie.weights import load_state_dict
 
@@ -201,7 +201,7 @@ def cmd_oracle(args) -> int:
     sys.path.insert(0, str(REPO / "bench"))
     import lmo_pipeline as LP
 
-    from pixie.datasets import BopDataset
+    from pixie.eval.datasets import BopDataset
 
     torch.set_num_threads(args.threads)
     ds = BopDataset(LP.DEFAULT_DATASET)

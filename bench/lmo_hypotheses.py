@@ -16,13 +16,16 @@ convention) keeping *every* hypothesis it produced, and counts, of all targets, 
 * ``GT rotation, box depth``: the true rotation with the distance from the box (the box rule's own error).
 
 It also reports the chosen pose's rotation error classes (< 15°, 15–30°, farther). Prints a table and writes
-``out/bench/lmo_hypotheses.json``.
+``out/bench/lmo_hypotheses.json`` plus ``out/bench/lmo_hypotheses.csv``: one row per target with the chosen pose
+(``T_cam_from_obj`` row-major, full float precision; empty when none), its score and every hypothesis's pose, so
+that two code versions can be compared target by target (``diff`` of the two CSVs).
 """
 
 from __future__ import annotations
 
 import argparse
 import copy
+import csv
 import json
 import sys
 import time
@@ -34,8 +37,13 @@ sys.path.insert(0, str(Path(__file__).resolve().parent))
 import lmo_pipeline as L  # noqa: E402
 
 from pixie.estimator import PoseEstimator  # noqa: E402
+from pixie.eval import pose_errors  # noqa: E402
 from pixie.pose import depth_from_box  # noqa: E402
 from pixie.query import check_bbox  # noqa: E402
+from pixie.runner import make_matcher  # noqa: E402
+
+
+CSV_COLUMNS = ["obj_id", "scene_id", "im_id", "pose", "score", "n_hypotheses", "hypothesis_poses"]
 
 
 def along_ray_to_depth(T: np.ndarray, z: float) -> np.ndarray:
@@ -52,22 +60,29 @@ def hypothesis_row(h, err: dict) -> dict:
             "view": h.view, "roll": h.roll, "add_ok": bool(err["add_ok"]), "rot_err": float(err["rot_err"])}
 
 
+def pose_text(T: np.ndarray | None) -> str:
+    """``T`` row-major as space-separated floats at full precision (``repr``); empty for no pose."""
+    return "" if T is None else " ".join(repr(float(x)) for x in np.asarray(T, float).ravel())
+
+
 def target_study(est: PoseEstimator, od, image, K, bbox, T_gt) -> dict:
     """ADD(-S)<0.1d of the chosen pose, of every hypothesis, and of the depth variants described above."""
     res = est.estimate(image, K, bbox=bbox)
     box = check_bbox(bbox, image.shape[:2])
-    pts = est._box_points
-    ok = lambda T: bool(L.pose_errors(od, T, T_gt)["add_ok"])  # noqa: E731
+    pts = est.box_points
+    ok = lambda T: bool(pose_errors(od, T, T_gt)["add_ok"])  # noqa: E731
     T_rot_gt = T_gt.copy()
     T_rot_gt[:3, 3] *= 1.05  # start 5 % off: the box rule must find the distance itself
-    row = {"gt_rotation_box_depth": ok(depth_from_box(T_rot_gt, K, pts, box)), "seconds": res.timings["total"]}
+    row = {"gt_rotation_box_depth": ok(depth_from_box(T_rot_gt, K, pts, box)), "seconds": res.timings["total"],
+           "pose": pose_text(res.T_cam_from_obj), "score": res.score,
+           "hypothesis_poses": ";".join(pose_text(h.T_cam_from_obj) for h in res.hypotheses)}
     if res.T_cam_from_obj is None:
         return {**row, "chosen": False, "any": False, "chosen_gt_depth": False, "chosen_box_depth": False,
                 "rot_err": None, "n_hypotheses": 0}
-    e = L.pose_errors(od, res.T_cam_from_obj, T_gt)
+    e = pose_errors(od, res.T_cam_from_obj, T_gt)
     row.update(chosen=bool(e["add_ok"]), rot_err=float(e["rot_err"]), n_hypotheses=len(res.hypotheses),
                any=any(ok(h.T_cam_from_obj) for h in res.hypotheses),
-               hypotheses=[hypothesis_row(h, L.pose_errors(od, h.T_cam_from_obj, T_gt)) for h in res.hypotheses],
+               hypotheses=[hypothesis_row(h, pose_errors(od, h.T_cam_from_obj, T_gt)) for h in res.hypotheses],
                chosen_gt_depth=ok(along_ray_to_depth(res.T_cam_from_obj, T_gt[2, 3])),
                chosen_box_depth=ok(depth_from_box(res.T_cam_from_obj, K, pts, box)))
     return row
@@ -87,7 +102,7 @@ def main(argv: list[str] | None = None) -> int:
     ds = L.BopDataset(args.dataset)
     cfg = L.make_config(args.overrides + ["refine.n_hypotheses=1000"])  # keep every distinct hypothesis
     objects = L.ObjectCache(ds)
-    matcher = L.make_matcher(cfg, cfg.refs.size)
+    matcher = make_matcher(cfg)
     targets = L.select_targets(ds, args.max_targets)
     rows, t0 = [], time.perf_counter()
     for oid in sorted({t.obj_id for t in targets}):
@@ -111,8 +126,15 @@ def main(argv: list[str] | None = None) -> int:
     for k, v in summary.items():
         print(f"  {k:<24}{v:>5}  ({100.0 * v / n:.1f} %)")
     args.out.parent.mkdir(parents=True, exist_ok=True)
+    csv_rows = [{k: r.get(k) for k in CSV_COLUMNS} for r in rows]
+    for r in rows:
+        del r["pose"], r["hypothesis_poses"]
     args.out.write_text(json.dumps({"config": cfg.to_dict(), "n_targets": n, "summary": summary, "targets": rows},
                                    indent=1))
+    with open(args.out.with_suffix(".csv"), "w", newline="") as f:
+        w = csv.DictWriter(f, CSV_COLUMNS)
+        w.writeheader()
+        w.writerows(csv_rows)
     return 0
 
 

@@ -8,11 +8,11 @@ Usage::
 Every ``--config`` is run in turn (with the global ``--set`` overrides applied first); without any
 ``--config`` the defaults (+ ``--set``) run as ``default``. Per configuration it
 
-* builds (or loads from ``out/bench/refs/<hash>/``) one reference set per object with
-  ``build_reference_set(mesh, cfg.refs, matcher=...)``; the hash covers ``cfg.refs`` and the matcher's
-  extraction settings, so configurations that only differ in matching/pose settings share references;
+* builds (or loads from ``out/bench/refs/``) one reference set per object with
+  :func:`pixie.runner.cached_reference_set` (its key covers the mesh, ``cfg.refs`` and the matcher's
+  extraction settings, so configurations that only differ in matching/pose settings share references);
 * runs ``PoseEstimator.estimate(image, K, bbox=bbox_visib)`` per target and appends one JSON line per
-  target to ``<out>/runs/<run hash>/targets.jsonl`` (resumable: finished targets are skipped);
+  target to ``<out>/runs/<run hash>/targets.jsonl`` (a :class:`pixie.runner.Journal`: finished targets are skipped);
 * writes ``<out>/runs/<run hash>/results.csv`` (BOP'19 format) and ``<out>/<NAME>.json``, and prints a table.
 
 Metrics: ADD(-S)<0.1d (ADD-S for the symmetric objects 10 and 11, BOP evaluation models), median
@@ -35,7 +35,6 @@ import copy
 import hashlib
 import json
 import math
-import os
 import sys
 import time
 from dataclasses import dataclass, field
@@ -46,9 +45,20 @@ import numpy as np
 REPO = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(REPO / "src"))
 
-from pixie import metrics as M  # noqa: E402
+from pixie.camera import make_T, project, transform_points  # noqa: E402
 from pixie.config import PixieConfig  # noqa: E402
-from pixie.datasets import BopDataset, PoseEstimate, Target, write_results_csv  # noqa: E402
+from pixie.encode import encode  # noqa: E402
+from pixie.estimator import PoseEstimator  # noqa: E402
+from pixie.eval import evaluate, load_object_data, pose_errors  # noqa: E402
+from pixie.eval.datasets import BopDataset, PoseEstimate, Target, write_results_csv  # noqa: E402
+from pixie.geometry import rotation_between  # noqa: E402
+from pixie.mesh import load_mesh  # noqa: E402
+from pixie.pose import lift  # noqa: E402
+from pixie.query import check_bbox, square_crop  # noqa: E402
+from pixie.references import ReferenceSet, keypoint_xyz_from_depth  # noqa: E402
+from pixie.render import Renderer  # noqa: E402
+from pixie.runner import Journal, cached_reference_set, make_matcher, reference_cache_path  # noqa: E402
+from pixie.views import camera_distance, square_crop_K, start_K  # noqa: E402
 
 DEFAULT_DATASET = REPO.parent / "shared/data/lmo_dev/lmo"
 DEFAULT_OUT = REPO / "out/bench/lmo_pipeline"
@@ -84,22 +94,6 @@ def _hash(obj) -> str:
     return hashlib.sha1(json.dumps(obj, sort_keys=True, default=str).encode()).hexdigest()[:12]
 
 
-def make_matcher(cfg: PixieConfig, size: int):
-    from pixie.matching import get_matcher
-
-    m = cfg.match
-    window = None if m.window is None else m.window * size
-    return get_matcher(m.matcher, device=m.device, weights=m.weights_dir, max_keypoints=m.max_keypoints,
-                       **({"window": window} if m.matcher.endswith("-nn") else {}),
-                       **({"detection_threshold": m.detection_threshold} if m.detection_threshold is not None else {}))
-
-
-def refs_key(cfg: PixieConfig) -> str:
-    m = cfg.match
-    return _hash({"refs": cfg.refs.__dict__, "matcher": m.matcher, "max_kp": m.max_keypoints, "w": m.weights_dir,
-                  "det": m.detection_threshold})
-
-
 def select_targets(ds: BopDataset, max_targets: int | None, objects: list[int] | None = None) -> list[Target]:
     """All targets, or ``max_targets`` spread evenly over the objects (evenly spaced within each object)."""
     tg = [t for t in ds.targets() if objects is None or t.obj_id in objects]
@@ -124,7 +118,11 @@ def gt_instance(ds: BopDataset, t: Target):
 
 
 class ObjectCache:
-    """Per object: model mesh (mm), eval data (diameter, ADD points, symmetry), reference sets per key."""
+    """Per object: model mesh (mm), eval data (diameter, ADD points, symmetry), reference sets per config.
+
+    Reference sets come from :func:`pixie.runner.cached_reference_set` (one cache in ``out/bench/refs``, shared
+    with other bench processes); ``build_seconds`` and ``refs_bytes`` record what they cost.
+    """
 
     def __init__(self, ds: BopDataset):
         self.ds = ds
@@ -133,73 +131,39 @@ class ObjectCache:
         self.refs_bytes: dict[tuple[str, int], int] = {}
 
     def mesh(self, oid: int):
-        from pixie.mesh import load_mesh
-
         if oid not in self._mesh:
             self._mesh[oid] = load_mesh(self.ds.model_path(oid), units="mm")
         return self._mesh[oid]
 
     def eval_data(self, oid: int):
-        from pixie.eval import load_object_data
-
         if oid not in self._eval:
             self._eval[oid] = load_object_data(self.ds, oid, n_points=2000)
         return self._eval[oid]
 
     def renderer(self, oid: int, smooth: bool = True):
-        from pixie.render import Renderer
-
         if (oid, smooth) not in self._renderer:
             self._renderer[(oid, smooth)] = Renderer(self.mesh(oid), smooth_normals=smooth)
         return self._renderer[(oid, smooth)]
 
     def refs(self, cfg: PixieConfig, oid: int, matcher, log=print):
-        from pixie.references import build_reference_set, load_reference_set, save_reference_set
-
-        key = refs_key(cfg)
+        path = reference_cache_path(self.mesh(oid), cfg, REFS_CACHE)
+        key = path.stem
         if (key, oid) in self._refs:
             return self._refs[(key, oid)]
-        path = REFS_CACHE / key / f"obj_{oid:06d}.npz"
-        mesh = self.mesh(oid)
-        lock = path.with_suffix(".lock")
-        path.parent.mkdir(parents=True, exist_ok=True)
-        if not path.is_file():  # another bench process may be building it: wait for it
-            try:
-                os.close(os.open(lock, os.O_CREAT | os.O_EXCL))
-                owner = True
-            except FileExistsError:
-                owner = False
-                log(f"  waiting for obj {oid} references being built by another process ({lock})")
-                while lock.exists() and not path.is_file():
-                    time.sleep(5)
-        if path.is_file():
-            refs = load_reference_set(path, mesh)
-        else:
-            t0 = time.perf_counter()
-            log(f"  building references for obj {oid} ({key}) ...")
-            refs = build_reference_set(mesh, cfg.refs, matcher=matcher)
-            path.parent.mkdir(parents=True, exist_ok=True)
-            save_reference_set(refs, path)
-            (path.parent / "config.json").write_text(json.dumps({"refs": cfg.refs.__dict__, "matcher": cfg.match.matcher,
-                                                                 "max_keypoints": cfg.match.max_keypoints}, indent=1))
-            lock.unlink(missing_ok=True)
-            log(f"  built obj {oid} in {time.perf_counter() - t0:.0f} s")
-        self.build_seconds[(key, oid)] = refs.build_seconds
-        self.refs_bytes[(key, oid)] = path.stat().st_size
+        refs = cached_reference_set(self.mesh(oid), cfg, REFS_CACHE, matcher=matcher,
+                                    echo=lambda msg: log(f"  obj {oid}: {msg}"))
+        self.build_seconds[(refs_key(cfg), oid)] = refs.build_seconds
+        self.refs_bytes[(refs_key(cfg), oid)] = path.stat().st_size
         self._refs = {k: v for k, v in self._refs.items() if k[0] == key}  # keep one config's sets in memory
         self._refs[(key, oid)] = refs
         return refs
 
 
-def pose_errors(od, T_est: np.ndarray | None, T_gt: np.ndarray) -> dict:
-    if T_est is None:
-        return {"add": None, "add_ok": False, "rot_err": None, "trans_err": None}
-    e = M.add_s(T_est, T_gt, od.add_pts, od.symmetric, od.tree)
-    rot = M.rotation_error_deg(T_est, T_gt)
-    if od.symmetric and len(od.syms):
-        rot = min(M.rotation_error_deg(T_est, T_gt @ S) for S in od.syms)
-    return {"add": e, "add_ok": bool(e < 0.1 * od.diameter), "rot_err": rot,
-            "trans_err": float(np.linalg.norm(T_est[:3, 3] - T_gt[:3, 3]))}
+def refs_key(cfg: PixieConfig) -> str:
+    """What the reference sets of a configuration depend on (the summary's key; the cache adds the mesh)."""
+    m = cfg.match
+    return _hash({"refs": cfg.refs.__dict__, "matcher": m.matcher, "max_kp": m.max_keypoints, "w": m.weights_dir,
+                  "det": m.detection_threshold})
 
 
 # ------------------------------------------------------------------------------------------ oracle
@@ -211,40 +175,28 @@ def oracle_reference(mesh, cfg: PixieConfig, T_gt: np.ndarray, matcher, renderer
     The GT rotation is turned (about the camera centre) so that the object centre lies on the optical axis,
     then rendered like a reference view: K_start focal, object-centred square crop of ``cfg.refs.size`` px.
     """
-    from pixie.camera import make_T
-    from pixie.encode import encode
-    from pixie.references import ReferenceSet, _store_features, keypoint_xyz_from_depth
-    from pixie.render import Renderer
-    from pixie.views import camera_distance, square_crop_K, start_K
-
     rc = cfg.refs
     S = int(rc.size)
     K0 = start_K(S, rc.focal_factor)
     dist = camera_distance(mesh.bounding_radius, K0[0, 0], S, fill=1.0 / rc.crop_pad)
     c = T_gt[:3, :3] @ mesh.center + T_gt[:3, 3]
-    a = c / np.linalg.norm(c)
-    z = np.array([0.0, 0.0, 1.0])
-    v, cos = np.cross(a, z), float(a @ z)
-    vx = np.array([[0, -v[2], v[1]], [v[2], 0, -v[0]], [-v[1], v[0], 0]])
-    Rc = np.eye(3) + vx + vx @ vx / (1.0 + cos)  # rotates a onto z
-    R = Rc @ T_gt[:3, :3]
+    R = rotation_between(c / np.linalg.norm(c), np.array([0.0, 0.0, 1.0])) @ T_gt[:3, :3]
     T = make_T(R, np.array([0.0, 0.0, dist]) - R @ mesh.center)
     K, _ = square_crop_K(K0, T, mesh.vertices, S, rc.crop_pad)
     renderer = renderer or Renderer(mesh, smooth_normals=rc.smooth_normals)
     r = renderer.render(T, K, S, S)
-    feats, xyzs, encs = {}, {}, {}
+    feats, encs = {}, {}
     for e in rc.encodings:
         img = encode(e, r.depth, r.normals, r.mask)
         encs[e] = img[None]
-        f = matcher.extract(img, mask=r.mask)
-        feats[e] = [f]
-        xyzs[e] = [keypoint_xyz_from_depth(r.depth, K, T, f.keypoints)]
+        feats[e] = matcher.extract(img, mask=r.mask)
     rc1 = copy.deepcopy(rc)
     rc1.rotations, rc1.n_fibonacci, rc1.canonical = 1, 1, False
     refs = ReferenceSet(mesh=mesh, config=rc1, poses=T[None, None], Ks=K[None, None], K_start=K0,
                         canonical=np.zeros(1, bool), depth=r.depth[None].astype(np.float32),
                         normals=r.normals[None].astype(np.float32), encodings=encs)
-    _store_features(refs, matcher.name, feats, xyzs)
+    for e, f in feats.items():
+        refs.set_features(matcher.name, e, [f], [keypoint_xyz_from_depth(r.depth, K, T, f.keypoints)])
     return refs
 
 
@@ -264,11 +216,6 @@ def oracle_target(image: np.ndarray, K: np.ndarray, bbox, T_gt: np.ndarray, mesh
     ``bbox`` is (x, y, w, h) as given to :meth:`PoseEstimator.estimate`. Any matcher built by
     :func:`pixie.matching.get_matcher` (or with the same interface) can be passed.
     """
-    from pixie.camera import project, transform_points
-    from pixie.estimator import PoseEstimator
-    from pixie.pose import lift
-    from pixie.query import check_bbox, square_crop
-
     cfg = copy.deepcopy(cfg)
     cfg.match.in_plane = "reference"
     refs = oracle_reference(mesh, cfg, T_gt, matcher, renderer)
@@ -281,9 +228,8 @@ def oracle_target(image: np.ndarray, K: np.ndarray, bbox, T_gt: np.ndarray, mesh
     A = np.vstack([crop.A, [0, 0, 1]])
     Ainv = np.linalg.inv(A)[:2]
     for e in est.encodings:
-        rf = est._banks[e].features[0]
-        m = matcher.match(qf, rf)
-        p2, p3 = lift(qf.keypoints, est._xyz[e][0], m.idx_q, m.idx_r)
+        (rf,), (rxyz,) = refs.features_for(matcher.name, e)
+        p2, p3, _ = lift(qf.keypoints, rxyz, matcher.match(qf, rf))
         if len(p2):
             uv = project(K, transform_points(T_gt, p3))
             uvc = uv @ Ainv[:, :2].T + Ainv[:, 2]
@@ -300,7 +246,7 @@ def run_oracle(ds: BopDataset, targets: list[Target], cfg: PixieConfig, matcher=
                objects: ObjectCache | None = None, progress=print) -> dict:
     """Oracle mode over ``targets``; returns a summary dict (and per-target rows under 'targets')."""
     objects = objects or ObjectCache(ds)
-    matcher = matcher or make_matcher(cfg, cfg.refs.size)
+    matcher = matcher or make_matcher(cfg)
     rows = []
     t0 = time.perf_counter()
     for i, t in enumerate(targets):
@@ -342,22 +288,12 @@ def run_pipeline(ds: BopDataset, targets: list[Target], cfg: PixieConfig, name: 
                  crop: str = "visib", tag: str = "", objects: ObjectCache | None = None, ar: bool = True,
                  progress=print, reverse: bool = False) -> dict:
     """Run the estimator on ``targets``; resumable through ``<out>/runs/<hash>/targets.jsonl``."""
-    from pixie.estimator import PoseEstimator
-
     objects = objects or ObjectCache(ds)
     run_hash = _hash({"cfg": cfg.to_dict(), "crop": crop, "tag": tag})
     run_dir = out_dir / "runs" / run_hash
     run_dir.mkdir(parents=True, exist_ok=True)
     (run_dir / "config.json").write_text(json.dumps({"name": name, "cfg": cfg.to_dict(), "crop": crop, "tag": tag}, indent=1))
-    jl = run_dir / "targets.jsonl"
-    done = {}
-    if jl.is_file():
-        for line in jl.read_text().splitlines():
-            try:
-                d = json.loads(line)
-            except ValueError:
-                continue
-            done[(d["scene_id"], d["im_id"], d["obj_id"])] = d
+    done = Journal(run_dir / "targets.jsonl", key=lambda d: (d["scene_id"], d["im_id"], d["obj_id"]))
     todo = [t for t in targets if (t.scene_id, t.im_id, t.obj_id) not in done]
     progress(f"[{name}] {len(targets)} targets, {len(targets) - len(todo)} cached, run {run_hash}")
     matcher = None
@@ -369,7 +305,7 @@ def run_pipeline(ds: BopDataset, targets: list[Target], cfg: PixieConfig, name: 
     for oid in sorted(by_obj, reverse=reverse):
         cfg_o = copy.deepcopy(cfg)
         if matcher is None:
-            matcher = make_matcher(cfg_o, cfg_o.refs.size)
+            matcher = make_matcher(cfg_o)
         refs = objects.refs(cfg_o, oid, matcher, log=progress)
         est = PoseEstimator(refs, cfg_o, matcher=matcher)
         od = objects.eval_data(oid)
@@ -397,15 +333,13 @@ def run_pipeline(ds: BopDataset, targets: list[Target], cfg: PixieConfig, name: 
                    "T": None if res.T_cam_from_obj is None else res.T_cam_from_obj.tolist(), "score": res.score,
                    "n_inliers": res.n_inliers, "failed": res.failed, "view": res.view, "roll": res.roll,
                    "seconds": dt, "timings": res.timings, **err}
-            with jl.open("a") as fh:
-                fh.write(json.dumps(rec) + "\n")
-            done[(t.scene_id, t.im_id, t.obj_id)] = rec
+            done.append(rec)
             n_run += 1
             if n_run % 10 == 0:
-                ok = sum(done[k]["add_ok"] for k in done)
+                ok = sum(r["add_ok"] for r in done.records.values())
                 progress(f"  [{name}] {n_run}/{len(todo)}  {(time.perf_counter() - t_start) / n_run:.2f} s/target  "
                          f"ADD<0.1d so far {ok}/{len(done)}")
-    recs = [done[(t.scene_id, t.im_id, t.obj_id)] for t in targets]
+    recs = [done.get((t.scene_id, t.im_id, t.obj_id)) for t in targets]
     return summarise(ds, targets, recs, cfg, name, run_dir, objects, ar)
 
 
@@ -438,8 +372,6 @@ def summarise(ds, targets, recs, cfg, name, run_dir, objects, ar=True) -> dict:
         "config": cfg.to_dict(),
     }
     if ar and ests:
-        from pixie.eval import evaluate
-
         t0 = time.perf_counter()
         sc = evaluate(ds, ests, metrics=["mssd", "mspd"], targets=targets, n_points=2000)
         out["ar_no_vsd"] = sc.overall.get("AR_noVSD")

@@ -27,7 +27,7 @@ import lmo_pipeline as L  # noqa: E402
 
 from pixie.camera import rotation_angle_deg  # noqa: E402
 from pixie.estimator import PoseEstimator  # noqa: E402
-from pixie.query import check_bbox  # noqa: E402
+from pixie.runner import make_matcher  # noqa: E402
 
 RANKS = (1, 5, 10, 24, 50)
 
@@ -43,10 +43,7 @@ def pair_statistics(sims: np.ndarray, background: float) -> dict[str, float]:
 
 def target_ranks(est: PoseEstimator, image, K, bbox, T_gt, near_deg: float) -> dict:
     """Rank (0-based) of the best-placed pair within ``near_deg`` of the GT rotation, per statistic."""
-    box = check_bbox(bbox, image.shape[:2])
-    crops = est._crops(image, box, None)
-    feats = [est.matcher.extract(c.image) for c in crops]
-    corr = est._match_all(crops, feats, None)
+    corr = est.match(est.prepare(image, K, bbox))
     means = [float(c[2].mean()) for c in corr.values() if len(c[2])]
     bg = float(np.median(means)) if means else 0.0
     keys = list(corr)
@@ -75,7 +72,7 @@ def main(argv: list[str] | None = None) -> int:
     ds = L.BopDataset(args.dataset)
     cfg = L.make_config(args.overrides)
     objects = L.ObjectCache(ds)
-    matcher = L.make_matcher(cfg, cfg.refs.size)
+    matcher = make_matcher(cfg)
     targets = L.select_targets(ds, args.max_targets)
     rows = []
     for oid in sorted({t.obj_id for t in targets}):

@@ -7,10 +7,17 @@ defining their own ``lmo`` / ``synth`` fixtures keep theirs.
 from __future__ import annotations
 
 import contextlib
+import json
 from pathlib import Path
 
+import cv2
 import numpy as np
 import pytest
+import trimesh
+
+from pixie.camera import make_T
+from pixie.mesh import from_arrays
+from pixie.render import Renderer, composite
 
 LMO_DIR = Path(__file__).resolve().parents[1].parent / "shared/data/lmo_dev/lmo"
 WEIGHTS_DIR = Path(__file__).resolve().parents[1].parent / "shared/weights"
@@ -33,7 +40,7 @@ def lmo_dir() -> Path:
 
 @pytest.fixture(scope="session")
 def lmo_dataset(lmo_dir):
-    from pixie.datasets import BopDataset
+    from pixie.eval.datasets import BopDataset
 
     return BopDataset(lmo_dir)
 
@@ -187,3 +194,83 @@ def build_refs():
             return build_reference_set(mesh, cfg, matcher=matcher, workers=workers)
 
     return _build
+
+
+# ------------------------------------------------------------------------------ a tiny BOP dataset
+
+SYN_K = np.array([[500.0, 0.0, 160.0], [0.0, 500.0, 120.0], [0.0, 0.0, 1.0]])
+SYN_H, SYN_W = 240, 320
+
+
+def rotvec(axis, deg):
+    """Rotation matrix of ``deg`` degrees about ``axis`` (test helper: ``from conftest import rotvec``)."""
+    from scipy.spatial.transform import Rotation
+
+    return Rotation.from_rotvec(np.radians(deg) * np.asarray(axis, float) / np.linalg.norm(axis)).as_matrix()
+
+
+def box_mesh(extents, center=(0.0, 0.0, 0.0)):
+    """A box :class:`~pixie.mesh.Mesh` (test helper: ``from conftest import box_mesh``)."""
+    b = trimesh.creation.box(extents=extents)
+    b.apply_translation(center)
+    return from_arrays(b.vertices, b.faces, name="box")
+
+
+def build_synthetic_bop(root: Path) -> dict:
+    """Write a tiny BOP dataset: obj 1 = box (asymmetric), obj 2 = cylinder (continuous
+    symmetry about z). Image 0: one box + one cylinder; image 1: two boxes (inst_count 2).
+    Depth is the renderer's z-buffer stored in 0.1 mm units (depth_scale 0.1)."""
+    box = trimesh.creation.box(extents=[80.0, 60.0, 40.0])
+    cyl = trimesh.creation.cylinder(radius=30.0, height=80.0, sections=64)
+    meshes = {1: from_arrays(box.vertices, box.faces), 2: from_arrays(cyl.vertices, cyl.faces)}
+    (root / "models").mkdir(parents=True)
+    info = {}
+    for oid, tm in ((1, box), (2, cyl)):
+        tm.export(root / "models" / f"obj_{oid:06d}.ply")
+        info[str(oid)] = {"diameter": meshes[oid].diameter}
+    info["2"]["symmetries_continuous"] = [{"axis": [0, 0, 1], "offset": [0, 0, 0]}]
+    (root / "models" / "models_info.json").write_text(json.dumps(info))
+    scenes = {
+        0: [(1, make_T(rotvec([1, 1, 0], 30), [-60.0, 0.0, 600.0])), (2, make_T(rotvec([1, 0, 0], 70), [70.0, 10.0, 650.0]))],
+        1: [(1, make_T(rotvec([0, 1, 1], 20), [-70.0, 0.0, 620.0])), (1, make_T(rotvec([1, 0, 1], 50), [60.0, 5.0, 560.0]))],
+    }
+    sc = root / "test" / "000001"
+    for sub in ("rgb", "depth"):
+        (sc / sub).mkdir(parents=True)
+    renderers = {o: Renderer(m) for o, m in meshes.items()}
+    gt, cam, gt_info, targets = {}, {}, {}, []
+    for im_id, insts in scenes.items():
+        renders = [renderers[o].render(T, SYN_K, SYN_H, SYN_W) for o, T in insts]
+        depth, owner = composite(renders)
+        cv2.imwrite(str(sc / "depth" / f"{im_id:06d}.png"), np.round(depth * 10).astype(np.uint16))
+        shade = np.zeros((SYN_H, SYN_W), np.float32)
+        for i, r in enumerate(renders):
+            shade = np.where(owner == i, 60 + 180 * np.abs(r.normals[..., 2]), shade)
+        cv2.imwrite(str(sc / "rgb" / f"{im_id:06d}.png"), np.repeat(shade[..., None], 3, 2).astype(np.uint8))
+        gt[str(im_id)] = [
+            {"obj_id": o, "cam_R_m2c": T[:3, :3].ravel().tolist(), "cam_t_m2c": T[:3, 3].tolist()} for o, T in insts
+        ]
+        cam[str(im_id)] = {"cam_K": SYN_K.ravel().tolist(), "depth_scale": 0.1}
+        gt_info[str(im_id)] = [
+            {"visib_fract": float((owner == i).sum() / max(r.mask.sum(), 1)), "px_count_all": int(r.mask.sum())}
+            for i, r in enumerate(renders)
+        ]
+        counts: dict[int, int] = {}
+        for o, _ in insts:
+            counts[o] = counts.get(o, 0) + 1
+        targets += [{"scene_id": 1, "im_id": im_id, "obj_id": o, "inst_count": c} for o, c in counts.items()]
+    (sc / "scene_gt.json").write_text(json.dumps(gt))
+    (sc / "scene_camera.json").write_text(json.dumps(cam))
+    (sc / "scene_gt_info.json").write_text(json.dumps(gt_info))
+    (root / "test_targets_bop19.json").write_text(json.dumps(targets))
+    (root / "camera.json").write_text(json.dumps({"width": SYN_W, "height": SYN_H}))
+    return {"meshes": meshes, "scenes": scenes}
+
+
+
+
+@pytest.fixture(scope="session")
+def synthetic_bop(tmp_path_factory):
+    """``(root, meta)`` of :func:`build_synthetic_bop` (written once per session; do not modify it)."""
+    root = tmp_path_factory.mktemp("synthetic_bop") / "bop"
+    return root, build_synthetic_bop(root)

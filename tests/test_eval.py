@@ -4,88 +4,22 @@ from __future__ import annotations
 
 import json
 import math
-from pathlib import Path
 
 import numpy as np
 import pytest
-import trimesh
+from conftest import rotvec
 
 from pixie.camera import make_K, make_T
-from pixie.datasets import BopDataset, PoseEstimate, gt_as_estimates, write_results_csv
+from pixie.eval.datasets import BopDataset, PoseEstimate, gt_as_estimates, write_results_csv
 from pixie.eval import evaluate, format_table, run_eval
-from pixie.mesh import from_arrays
-from pixie.render import Renderer, composite
 
 K = make_K(500.0, 500.0, 160.0, 120.0)
 H, W = 240, 320
 
 
-def _rot(axis, deg):
-    from scipy.spatial.transform import Rotation
-
-    return Rotation.from_rotvec(np.radians(deg) * np.asarray(axis, float) / np.linalg.norm(axis)).as_matrix()
-
-
-# ---------------------------------------------------------------------------- synthetic dataset
-
-
-def _build_synthetic(root: Path) -> dict:
-    """Write a tiny BOP dataset: obj 1 = box (asymmetric), obj 2 = cylinder (continuous
-    symmetry about z). Image 0: one box + one cylinder; image 1: two boxes (inst_count 2).
-    Depth is the renderer's z-buffer stored in 0.1 mm units (depth_scale 0.1)."""
-    import cv2
-
-    box = trimesh.creation.box(extents=[80.0, 60.0, 40.0])
-    cyl = trimesh.creation.cylinder(radius=30.0, height=80.0, sections=64)
-    meshes = {1: from_arrays(box.vertices, box.faces), 2: from_arrays(cyl.vertices, cyl.faces)}
-    (root / "models").mkdir(parents=True)
-    info = {}
-    for oid, tm in ((1, box), (2, cyl)):
-        tm.export(root / "models" / f"obj_{oid:06d}.ply")
-        info[str(oid)] = {"diameter": meshes[oid].diameter}
-    info["2"]["symmetries_continuous"] = [{"axis": [0, 0, 1], "offset": [0, 0, 0]}]
-    (root / "models" / "models_info.json").write_text(json.dumps(info))
-    scenes = {
-        0: [(1, make_T(_rot([1, 1, 0], 30), [-60.0, 0.0, 600.0])), (2, make_T(_rot([1, 0, 0], 70), [70.0, 10.0, 650.0]))],
-        1: [(1, make_T(_rot([0, 1, 1], 20), [-70.0, 0.0, 620.0])), (1, make_T(_rot([1, 0, 1], 50), [60.0, 5.0, 560.0]))],
-    }
-    sc = root / "test" / "000001"
-    for sub in ("rgb", "depth"):
-        (sc / sub).mkdir(parents=True)
-    renderers = {o: Renderer(m) for o, m in meshes.items()}
-    gt, cam, gt_info, targets = {}, {}, {}, []
-    for im_id, insts in scenes.items():
-        renders = [renderers[o].render(T, K, H, W) for o, T in insts]
-        depth, owner = composite(renders)
-        cv2.imwrite(str(sc / "depth" / f"{im_id:06d}.png"), np.round(depth * 10).astype(np.uint16))
-        shade = np.zeros((H, W), np.float32)
-        for i, r in enumerate(renders):
-            shade = np.where(owner == i, 60 + 180 * np.abs(r.normals[..., 2]), shade)
-        cv2.imwrite(str(sc / "rgb" / f"{im_id:06d}.png"), np.repeat(shade[..., None], 3, 2).astype(np.uint8))
-        gt[str(im_id)] = [
-            {"obj_id": o, "cam_R_m2c": T[:3, :3].ravel().tolist(), "cam_t_m2c": T[:3, 3].tolist()} for o, T in insts
-        ]
-        cam[str(im_id)] = {"cam_K": K.ravel().tolist(), "depth_scale": 0.1}
-        gt_info[str(im_id)] = [
-            {"visib_fract": float((owner == i).sum() / max(r.mask.sum(), 1)), "px_count_all": int(r.mask.sum())}
-            for i, r in enumerate(renders)
-        ]
-        counts: dict[int, int] = {}
-        for o, _ in insts:
-            counts[o] = counts.get(o, 0) + 1
-        targets += [{"scene_id": 1, "im_id": im_id, "obj_id": o, "inst_count": c} for o, c in counts.items()]
-    (sc / "scene_gt.json").write_text(json.dumps(gt))
-    (sc / "scene_camera.json").write_text(json.dumps(cam))
-    (sc / "scene_gt_info.json").write_text(json.dumps(gt_info))
-    (root / "test_targets_bop19.json").write_text(json.dumps(targets))
-    (root / "camera.json").write_text(json.dumps({"width": W, "height": H}))
-    return {"meshes": meshes, "scenes": scenes}
-
-
 @pytest.fixture(scope="module")
-def synth(tmp_path_factory):
-    root = tmp_path_factory.mktemp("synth") / "synth"
-    meta = _build_synthetic(root)
+def synth(synthetic_bop):
+    root, meta = synthetic_bop
     return BopDataset(root), meta
 
 
@@ -124,7 +58,7 @@ def test_synthetic_continuous_symmetry(synth):
     """The cylinder turned about its axis: MSSD within the discretisation, ADD-S ~ 0, ADD large."""
     ds, meta = synth
     ests = _gt_ests(meta)
-    ests[1].T_cam_from_obj = ests[1].T_cam_from_obj @ make_T(_rot([0, 0, 1], 37.0), np.zeros(3))
+    ests[1].T_cam_from_obj = ests[1].T_cam_from_obj @ make_T(rotvec([0, 0, 1], 37.0), np.zeros(3))
     s = evaluate(ds, ests, metrics=["mssd", "add", "adds", "ad"])
     t = next(t for t in s.targets if t.obj_id == 2)
     d = ds.model_info(2)["diameter"]

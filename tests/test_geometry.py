@@ -16,6 +16,7 @@ from pixie import camera as cam
 from pixie import views
 from pixie.encode import ENCODINGS, check_encodings, edge_map, encode
 from pixie.errors import CameraError, ConfigError, ImageError, MeshError
+from pixie.geometry import check_image, check_mask, lookup, nearest_pixel, orthonormalize, rodrigues, rotation_between
 from pixie.mesh import from_arrays, load_mesh
 from pixie.query import check_bbox, square_crop
 from pixie.render import Renderer
@@ -531,3 +532,58 @@ def test_empty_crop_bbox_is_an_image_error():
     with pytest.raises(ImageError):
         check_bbox((np.nan, 2, 3, 4), (480, 640))
     np.testing.assert_allclose(check_bbox((-10, 5, 100, 1000), (480, 640)), [0, 5, 90, 480])
+
+
+# ------------------------------------------------------------------------ pixie.geometry helpers
+
+
+def test_orthonormalize():
+    rng = np.random.default_rng(0)
+    T = np.eye(4)
+    T[:3, :3] += rng.normal(0, 1e-3, (3, 3))
+    T[:3, 3] = [1, 2, 3]
+    U = orthonormalize(T)
+    np.testing.assert_allclose(U[:3, :3] @ U[:3, :3].T, np.eye(3), atol=1e-12)
+    assert np.linalg.det(U[:3, :3]) == pytest.approx(1.0)
+    np.testing.assert_array_equal(U[:3, 3], [1, 2, 3])
+
+
+def test_rodrigues_matches_opencv_and_rotation_between_maps_a_onto_b():
+    rng = np.random.default_rng(1)
+    for _ in range(5):
+        axis, angle = rng.normal(size=3), rng.uniform(-np.pi, np.pi)
+        np.testing.assert_allclose(rodrigues(3.0 * axis, angle),
+                                   cv2.Rodrigues(angle * axis / np.linalg.norm(axis))[0], atol=1e-12)
+        a, b = (v / np.linalg.norm(v) for v in rng.normal(size=(2, 3)))
+        R = rotation_between(a, b)
+        np.testing.assert_allclose(R @ a, b, atol=1e-12)
+        np.testing.assert_allclose(R @ np.cross(a, b), np.cross(a, b), atol=1e-12)  # turns about a x b only
+        assert np.linalg.det(R) == pytest.approx(1.0)
+    np.testing.assert_allclose(rotation_between(a, a), np.eye(3), atol=1e-12)
+
+
+def test_nearest_pixel_rounds_and_clips():
+    kp = np.array([[0.49, 0.51], [-3.0, 9.7], [4.5, 2.0], [5.5, 1.49]])
+    cols, rows = nearest_pixel(kp, (10, 5))
+    np.testing.assert_array_equal(cols, [0, 0, 4, 4])  # 4.5 and 5.5 round to even, then clip to w - 1
+    np.testing.assert_array_equal(rows, [1, 9, 2, 1])
+    img = np.arange(50).reshape(10, 5)
+    np.testing.assert_array_equal(lookup(img, kp), img[rows, cols])
+
+
+def test_check_image_is_one_rule_for_every_input():
+    grey = np.arange(64, dtype=np.uint8).reshape(8, 8)
+    rgb = check_image(grey)
+    assert rgb.shape == (8, 8, 3) and rgb.flags.c_contiguous and np.all(rgb[..., 2] == grey)
+    rgba = np.dstack([rgb, np.full((8, 8), 9, np.uint8)])
+    np.testing.assert_array_equal(check_image(rgba), rgb)  # alpha dropped
+    np.testing.assert_array_equal(check_image(grey[..., None]), rgb)
+    with pytest.raises(ImageError, match="query image is empty or too small"):
+        check_image(rgb[:4], "query image", min_side=8)
+    for bad, msg in ((rgb.astype(np.float32), "uint8"), (np.zeros((8, 8, 2), np.uint8), "shape"), ([[1]], "numpy")):
+        with pytest.raises(ImageError, match=msg):
+            check_image(bad)
+    assert check_mask(None, (8, 8)) is None
+    assert check_mask(np.ones((8, 8), np.uint8), (8, 8)).dtype == bool
+    with pytest.raises(ImageError, match="does not match"):
+        check_mask(np.ones((4, 8), bool), (8, 8))

@@ -3,14 +3,23 @@
 from __future__ import annotations
 
 import importlib.util
+import math
 
 import numpy as np
 import pytest
 
-from pixie.camera import make_K, make_T, project, rotation_angle_deg, transform_points
+from pixie.camera import make_K, project, rotation_angle_deg, transform_points
 from pixie.errors import ConfigError
+from pixie.features import Matches
 from pixie.pose import (
-    box_iou, depth_from_box, lift, projected_box, rotation_consistency, solve_pnp_ransac, solve_translation,
+    background_similarity,
+    box_iou,
+    depth_from_box,
+    hypothesis_score,
+    lift,
+    pair_rank_score,
+    projected_box,
+    solve_pnp_ransac,
 )
 
 K = make_K(600.0, 600.0, 319.5, 239.5)
@@ -54,7 +63,7 @@ def test_pnp_recovers_pose_with_outliers(proc_mesh, make_pose, solver, seed):
     assert inl[is_in].mean() > 0.98
     assert inl[~is_in].mean() < 0.05
     assert res.reprojection_rmse < 1.5
-    assert 0.55 < res.inlier_ratio < 0.65
+    assert 0.55 < res.n_inliers / res.n_correspondences < 0.65
 
 
 @pytest.mark.parametrize("solver", SOLVERS)
@@ -81,17 +90,41 @@ def test_pnp_unknown_solver(proc_mesh, make_pose):
         solve_pnp_ransac(uv, X, K, solver="magic")
 
 
-def test_lift_drops_nan_xyz():
+def test_lift_drops_nan_xyz_and_keeps_similarities():
     kq = np.array([[10.0, 20.0], [30.0, 40.0], [50.0, 60.0], [70.0, 80.0]])
     xyz = np.array([[1.0, 2.0, 3.0], [np.nan, np.nan, np.nan], [4.0, 5.0, 6.0], [7.0, np.nan, 9.0]])
-    idx_q = np.array([3, 2, 1, 0])
-    idx_r = np.array([0, 1, 2, 3])
-    p2, p3 = lift(kq, xyz, idx_q, idx_r)
+    m = Matches(np.array([3, 2, 1, 0]), np.array([0, 1, 2, 3]), np.array([0.9, 0.8, 0.7, 0.6]))
+    p2, p3, sims = lift(kq, xyz, m)
     np.testing.assert_array_equal(p2, [[70.0, 80.0], [30.0, 40.0]])
     np.testing.assert_array_equal(p3, [[1.0, 2.0, 3.0], [4.0, 5.0, 6.0]])
-    assert p2.dtype == np.float64 and p3.dtype == np.float64
-    e2, e3 = lift(kq, xyz, np.zeros(0, int), np.zeros(0, int))
-    assert e2.shape == (0, 2) and e3.shape == (0, 3)
+    np.testing.assert_allclose(sims, [0.9, 0.7], rtol=1e-6)
+    assert p2.dtype == np.float64 and p3.dtype == np.float64 and sims.dtype == np.float64
+    e2, e3, es = lift(kq, xyz, Matches.empty())
+    assert e2.shape == (0, 2) and e3.shape == (0, 3) and es.shape == (0,)
+
+
+def test_background_and_pair_ranking():
+    """The background is the median of per-pair mean similarities, 0 with too few pairs; 'excess' ranks a
+    pair by its similarity above it, 'count' by its number of matches."""
+    sims = [np.full(5, 0.5)] * 4 + [np.full(5, 0.6)] * 5 + [np.zeros(0)]
+    assert background_similarity(sims) == pytest.approx(0.6)
+    assert background_similarity(sims[:7]) == 0.0  # 7 pairs with matches: no background
+    strong, many = np.array([0.9, 0.9]), np.full(10, 0.55)
+    assert pair_rank_score(strong, 0.5, "excess") > pair_rank_score(many, 0.5, "excess")
+    assert pair_rank_score(strong, 0.5, "count") < pair_rank_score(many, 0.5, "count")
+    with pytest.raises(ConfigError, match="candidate_ranking"):
+        pair_rank_score(strong, 0.5, "votes")
+
+
+def test_hypothesis_score_terms():
+    s_in = np.array([0.8, 0.7, 0.6])
+    assert hypothesis_score("inliers", 3, s_in, 0.5, 0.0, 1.0) == 3.0
+    assert hypothesis_score("similarity", 3, s_in, 0.5, 0.0, 1.0) == pytest.approx(2.1)
+    assert hypothesis_score("excess", 3, s_in, 0.5, 0.0, 1.0) == pytest.approx(0.6 + 0.003)
+    # combined: exp(-(35/35)^2) at 35 degrees from the reference view, 0.25 + 0.75 * 0.5 for IoU 0.5
+    assert hypothesis_score("combined", 3, s_in, 0.5, 35.0, 0.5) == pytest.approx(3 * math.exp(-1) * 0.625)
+    with pytest.raises(ConfigError, match="pose.scoring"):
+        hypothesis_score("votes", 3, s_in, 0.5, 0.0, 1.0)
 
 
 @pytest.mark.parametrize("scale", [1.3, 1 / 1.3])
@@ -113,46 +146,11 @@ def test_depth_from_box_restores_distance(proc_mesh, make_pose, scale):
     np.testing.assert_array_equal(depth_from_box(wrong, K, pts, np.array([10.0, 10.0, 10.0, 50.0])), wrong)
 
 
-def test_box_iou_and_rotation_consistency():
+def test_box_iou():
     a = np.array([0.0, 0.0, 10.0, 10.0])
     assert box_iou(a, a) == pytest.approx(1.0)
     assert box_iou(a, np.array([5.0, 0.0, 15.0, 10.0])) == pytest.approx(50 / 150)
     assert box_iou(a, np.array([20.0, 20.0, 30.0, 30.0])) == 0.0
-    Rz = np.array([[0.0, -1.0, 0.0], [1.0, 0.0, 0.0], [0.0, 0.0, 1.0]])
-    assert rotation_consistency(make_T(Rz, [0, 0, 500]), make_T(np.eye(3), [0, 0, 400])) == pytest.approx(90.0)
-
-
-@pytest.mark.parametrize("seed", [0, 1])
-def test_translation_for_a_known_rotation(proc_mesh, make_pose, seed):
-    """R fixed: t from 2-point RANSAC + least squares, with 40 % outliers and 0.5 px noise."""
-    T = make_pose(proc_mesh, 200 + seed, distance_factor=6.0, offset_px=80)
-    uv, X, is_in = _correspondences(proc_mesh, T, n=200, seed=seed)
-    t, inl = solve_translation(uv, X, K, T[:3, :3], threshold_px=3.0)
-    assert t is not None
-    # 0.5 px noise over ~200 inliers: depth within 0.5 % of the distance, lateral within 0.5 mm
-    assert abs(t[2] - T[2, 3]) < 0.005 * T[2, 3], (t, T[:3, 3])
-    assert np.linalg.norm(t[:2] - T[:2, 3]) < 0.5
-    found = np.zeros(len(uv), bool)
-    found[inl] = True
-    assert found[is_in].mean() > 0.98 and found[~is_in].mean() < 0.05
-
-
-def test_translation_noiseless_is_exact(proc_mesh, make_pose):
-    T = make_pose(proc_mesh, 3, distance_factor=4.0, offset_px=50)
-    X = proc_mesh.sample_points(20, seed=3)
-    uv = project(K, transform_points(T, X))
-    t, inl = solve_translation(uv, X, K, T[:3, :3], threshold_px=1.0)
-    np.testing.assert_allclose(t, T[:3, 3], atol=1e-6)
-    assert len(inl) == 20
-
-
-def test_translation_too_few_points(proc_mesh, make_pose):
-    T = make_pose(proc_mesh, 4)
-    X = proc_mesh.sample_points(4, seed=0)
-    t, inl = solve_translation(project(K, transform_points(T, X)), X, K, T[:3, :3], min_inliers=6)
-    assert t is None
-    t, _ = solve_translation(np.zeros((0, 2)), np.zeros((0, 3)), K, np.eye(3))
-    assert t is None
 
 
 def test_hull_vertices_give_the_exact_projected_box(lmo_meshes, make_pose):

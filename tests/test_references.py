@@ -19,7 +19,6 @@ import trimesh
 from pixie.camera import backproject_depth, invert_T, transform_points
 from pixie.config import RefsConfig
 from pixie.errors import ReferenceSetError
-from pixie.matching import unpack_features
 from pixie.mesh import from_arrays
 from pixie.references import (
     FORMAT_VERSION,
@@ -207,14 +206,12 @@ def _surface_distance(tm: trimesh.Trimesh, pts: np.ndarray) -> np.ndarray:
 
 
 def _check_feature_xyz(refs, matcher_name, proc_trimesh):
-    key = refs.feature_key(matcher_name, "shade3_edges")
-    packed = refs.features[key]
-    feats = unpack_features(packed)
-    assert len(feats) == V * R
+    feats, xyz_per_image = refs.features_for(matcher_name, "shade3_edges")
+    assert len(feats) == V * R == len(xyz_per_image)
     assert refs.feature_rolls(matcher_name, "shade3_edges") == R
     n = [len(f) for f in feats]
-    assert sum(n) == len(packed["xyz"]) and min(n) > 0
-    xyz = packed["xyz"]
+    assert [len(x) for x in xyz_per_image] == n and min(n) > 0
+    xyz = np.concatenate(xyz_per_image)
     assert np.isfinite(xyz).all(), "features are extracted inside the mask: no keypoint may lift to NaN"
     # every keypoint's point lies on the mesh surface ...
     dist = _surface_distance(proc_trimesh, xyz.astype(np.float64))
@@ -226,6 +223,9 @@ def _check_feature_xyz(refs, matcher_name, proc_trimesh):
     kp = feats[k].keypoints
     c, rr = np.rint(kp[:, 0]).astype(int), np.rint(kp[:, 1]).astype(int)
     assert np.abs(xyz[offs[k] : offs[k + 1]] - r.xyz[rr, c]).max() < 1e-3
+    np.testing.assert_array_equal(xyz_per_image[k], xyz[offs[k] : offs[k + 1]])
+    with pytest.raises(ReferenceSetError, match="no superpoint-nn features"):
+        refs.features_for("superpoint-nn", "shade3_edges")
     return feats
 
 

@@ -9,9 +9,9 @@ import pytest
 
 pytest.importorskip("manifold3d")
 
-from pixie import metrics  # noqa: E402
+from pixie.eval import shape as metrics  # noqa: E402
 from pixie.camera import look_at, make_K  # noqa: E402
-from pixie.datasets import BopDataset  # noqa: E402
+from pixie.eval.datasets import BopDataset  # noqa: E402
 from pixie.mesh import from_arrays, load_mesh  # noqa: E402
 from pixie.query import bbox_from_mask  # noqa: E402
 from pixie.render import Renderer  # noqa: E402

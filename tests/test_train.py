@@ -70,7 +70,7 @@ def test_finetune_steps_reduce_loss(tmp_path):
     assert all(d["q_valid"].sum() > 0 for d in data)
     cfg = TrainConfig(steps=30, batch_pairs=2, lr=3e-3, eval_every=30, ckpt_every=15, window=48.0)
     model, hist = train(data, data, cfg, run_dir=tmp_path / "run", log=lambda *_: None)
-    from pixie.adapter import DescriptorAdapter
+    from pixie.matching.adapter import DescriptorAdapter
 
     t = torch.tensor(cfg.init_temp)
     with torch.no_grad():

@@ -15,8 +15,17 @@ from pathlib import Path
 
 import numpy as np
 
+from pixie.camera import parse_K
 from pixie.config import PixieConfig
 from pixie.errors import PixieError
+from pixie.estimator import PoseEstimator
+from pixie.eval import add_eval_arguments, main_eval, run_eval
+from pixie.mesh import load_mesh
+from pixie.query import load_image
+from pixie.references import build_reference_set, check_output_path, load_reference_set, save_reference_set
+from pixie.render import Renderer
+from pixie.runner import make_matcher, run_dataset
+from pixie.viz import contact_sheet, overlay_pose, save_png
 
 
 def _config(args: argparse.Namespace) -> PixieConfig:
@@ -46,10 +55,6 @@ def _tqdm_progress(total_label: str):
 
 # ------------------------------------------------------------------------------------------- refs
 def cmd_refs_build(args: argparse.Namespace) -> int:
-    from pixie.mesh import load_mesh
-    from pixie.references import build_reference_set, check_output_path, save_reference_set
-    from pixie.runner import make_matcher
-
     cfg = _config(args)
     if args.views is not None:
         cfg.refs.n_fibonacci = args.views - (6 if cfg.refs.canonical else 0)
@@ -76,14 +81,11 @@ def cmd_refs_build(args: argparse.Namespace) -> int:
 
 
 def cmd_refs_show(args: argparse.Namespace) -> int:
-    from pixie.references import load_reference_set
-    from pixie.viz import contact_sheet, save_png
-
     refs = load_reference_set(args.refs)
     views = None if args.views is None else [int(v) for v in args.views.split(",")]
     sheet = contact_sheet(refs, args.encodings.split(",") if args.encodings else None, views, tile=args.tile)
     save_png(args.output, sheet)
-    feats = ", ".join(f"{k} ({len(v['feat_image_sizes'])} images)" for k, v in refs.features.items()) or "none"
+    feats = ", ".join(f"{k} ({len(refs.features_for(*k.split('/', 1))[0])} images)" for k in refs.features) or "none"
     print(f"{args.refs}: {refs.mesh.name}, {refs.n_views} views x {refs.n_rolls} rolls at {refs.size} px; "
           f"features: {feats}; sheet -> {args.output}")
     return 0
@@ -91,13 +93,6 @@ def cmd_refs_show(args: argparse.Namespace) -> int:
 
 # --------------------------------------------------------------------------------------- estimate
 def cmd_estimate(args: argparse.Namespace) -> int:
-    from pixie.camera import parse_K
-    from pixie.estimator import PoseEstimator
-    from pixie.query import load_image
-    from pixie.references import load_reference_set
-    from pixie.render import Renderer
-    from pixie.viz import overlay_pose, save_png
-
     cfg = _config(args)
     refs = load_reference_set(args.refs)
     image = load_image(args.image)
@@ -131,9 +126,6 @@ def cmd_estimate(args: argparse.Namespace) -> int:
 
 # ------------------------------------------------------------------------------------------- run
 def cmd_run(args: argparse.Namespace) -> int:
-    from pixie.eval import run_eval
-    from pixie.runner import run_dataset
-
     cfg = _config(args)
     objects = None if not args.objects else [int(o) for o in args.objects.split(",")]
     t0 = time.perf_counter()
@@ -146,8 +138,6 @@ def cmd_run(args: argparse.Namespace) -> int:
 
 
 def build_parser() -> argparse.ArgumentParser:
-    from pixie.eval import add_eval_arguments, main_eval
-
     p = argparse.ArgumentParser(prog="pixie", description="6D object pose from one RGB photo and an untextured CAD model")
     p.add_argument("-v", "--verbose", action="store_true")
     sub = p.add_subparsers(dest="command", required=True)

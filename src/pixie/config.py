@@ -92,8 +92,6 @@ class RefineConfig:
     # on LM-O (48 targets) 2 iterations x 6 hypotheses doubled ADD(-S)<0.1d (bench/RESULTS.md).
     render_iters: int = 2
     render_hypotheses: int = 6
-    render_seeds: int = 0  # + the poses of this many best-ranked reference (view, roll) pairs themselves
-    render_window: float | None = None  # NN window for aligned matching, fraction of refs.size (None: match.window)
 
 
 @dataclass

@@ -14,11 +14,20 @@ import sys
 import time
 from pathlib import Path
 
+import cv2
 import numpy as np
 
 from pixie.camera import look_at, make_K, rotation_angle_deg
 from pixie.config import PixieConfig
+from pixie.encode import shade
+from pixie.estimator import PoseEstimator
+from pixie.eval.datasets import BopDataset
+from pixie.eval.errors import add
 from pixie.mesh import Mesh, from_arrays, load_mesh
+from pixie.query import bbox_from_mask
+from pixie.render import Renderer
+from pixie.runner import cached_reference_set
+from pixie.viz import contact_sheet, overlay_pose, save_png
 
 REPO = Path(__file__).resolve().parents[2]
 LMO = REPO.parent / "shared" / "data" / "lmo_dev" / "lmo"
@@ -44,11 +53,6 @@ def generated_part() -> Mesh:
 
 def generated_photo(mesh: Mesh, seed: int = 0) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
     """A 640x480 'photo' of ``mesh``: shaded, random face colours, noisy cluttered background."""
-    import cv2
-
-    from pixie.encode import shade
-    from pixie.render import Renderer
-
     rng = np.random.default_rng(seed)
     K = make_K(600.0, 600.0, 319.5, 239.5)
     T = look_at(mesh.center + np.array([260.0, -380.0, 300.0]), mesh.center, np.array([0.0, 0.0, 1.0]))
@@ -65,13 +69,6 @@ def generated_photo(mesh: Mesh, seed: int = 0) -> tuple[np.ndarray, np.ndarray, 
 
 
 def main(argv: list[str] | None = None) -> int:
-    from pixie.estimator import PoseEstimator
-    from pixie.metrics import add
-    from pixie.query import bbox_from_mask
-    from pixie.render import Renderer
-    from pixie.runner import cached_reference_set
-    from pixie.viz import contact_sheet, overlay_pose, save_png
-
     ap = argparse.ArgumentParser(description=__doc__)
     ap.add_argument("--out", default=str(REPO / "out" / "demo"))
     ap.add_argument("--synthetic", action="store_true", help="use a generated part even if LM-O is present")
@@ -82,8 +79,6 @@ def main(argv: list[str] | None = None) -> int:
     cfg = PixieConfig().apply_overrides(DEMO_OVERRIDES)
 
     if LMO.is_dir() and not args.synthetic:
-        from pixie.datasets import BopDataset
-
         ds = BopDataset(LMO)
         mesh = load_mesh(ds.model_path(args.obj_id))
         image, K = ds.load_rgb(2, args.im_id), ds.camera(2, args.im_id).K

@@ -1,4 +1,8 @@
-"""Lifting 2D–2D matches to 2D–3D and solving PnP + RANSAC (OpenCV, or PoseLib as an option)."""
+"""From matches to scored poses: the one lift (2D–2D matches -> 2D–3D), PnP + RANSAC (PoseLib or OpenCV),
+hypothesis scoring and the distance from the box.
+
+Pure functions; the estimator (:mod:`pixie.estimator`) chains them.
+"""
 
 from __future__ import annotations
 
@@ -7,8 +11,12 @@ from dataclasses import dataclass
 import cv2
 import numpy as np
 
-from pixie.camera import make_T, project, rotation_angle_deg, transform_points
+from pixie.camera import make_T, project, transform_points
 from pixie.errors import ConfigError
+from pixie.features import Matches
+
+SCORINGS = ("inliers", "combined", "similarity", "combined_similarity", "excess", "combined_excess")
+MIN_BACKGROUND_PAIRS = 8  # (view, roll) pairs with matches needed to estimate a query's background similarity
 
 
 @dataclass
@@ -28,24 +36,29 @@ class PnPResult:
     def ok(self) -> bool:
         return self.T_cam_from_obj is not None
 
-    @property
-    def inlier_ratio(self) -> float:
-        return self.n_inliers / max(self.n_correspondences, 1)
 
-
-def lift(kpts_q: np.ndarray, ref_xyz: np.ndarray, idx_q: np.ndarray, idx_r: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
-    """2D–3D correspondences from matches: query pixels and the object-space XYZ of the reference keypoints.
+def lift(kpts_q: np.ndarray, ref_xyz: np.ndarray, matches: Matches) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """2D–3D correspondences from matches: query pixels, the object-space XYZ of the matched reference
+    keypoints and each match's similarity. Every stage lifts with this function.
 
     Matches whose reference keypoint lies off the object (NaN XYZ) are dropped.
 
+    Parameters
+    ----------
+    kpts_q : (N, 2) query keypoints
+    ref_xyz : (M, 3) object point (mm) of each reference keypoint, NaN off the object
+    matches : Matches between the two
+
     Returns
     -------
-    pts2d : (M, 2) float64, query pixels
-    pts3d : (M, 3) float64, object points (mm)
+    pts2d : (K, 2) float64, query pixels
+    pts3d : (K, 3) float64, object points (mm)
+    sims : (K,) float64, the matcher's confidence of each kept match
     """
-    X = ref_xyz[idx_r]
+    X = ref_xyz[matches.idx_r]
     ok = np.all(np.isfinite(X), axis=1)
-    return kpts_q[idx_q[ok]].astype(np.float64), X[ok].astype(np.float64)
+    return (kpts_q[matches.idx_q[ok]].astype(np.float64), X[ok].astype(np.float64),
+            matches.scores[ok].astype(np.float64))
 
 
 def solve_pnp_ransac(
@@ -119,15 +132,6 @@ def _poselib_pnp(pts2d, pts3d, K, iterations, threshold_px, confidence=0.9999, s
     return make_T(pose.R, pose.t)
 
 
-def rotation_consistency(T_est: np.ndarray, T_ref: np.ndarray) -> float:
-    """Angle (degrees) between an estimate's rotation and the reference view's rotation.
-
-    Matching only works between similar viewpoints, so a correct estimate lies near the
-    reference view it was matched against; a large angle flags a flipped or degenerate solution.
-    """
-    return rotation_angle_deg(T_est[:3, :3], T_ref[:3, :3])
-
-
 def projected_box(T: np.ndarray, K: np.ndarray, points: np.ndarray) -> np.ndarray:
     """Axis-aligned box (x0, y0, x1, y1) of projected object points."""
     uv = project(K, transform_points(T, points))
@@ -164,64 +168,51 @@ def depth_from_box(T: np.ndarray, K: np.ndarray, points: np.ndarray, box_xyxy: n
     return out
 
 
-def solve_translation(
-    pts2d: np.ndarray,
-    pts3d: np.ndarray,
-    K: np.ndarray,
-    R: np.ndarray,
-    threshold_px: float = 5.0,
-    iterations: int = 200,
-    min_inliers: int = 6,
-    seed: int = 0,
-) -> tuple[np.ndarray | None, np.ndarray]:
-    """Translation for a known rotation: RANSAC over 2-point linear solutions, least squares on the inliers.
+# ------------------------------------------------------------------------------------------------ scoring
 
-    With ``R`` fixed the projection equations are linear in ``t`` (two per correspondence:
-    ``t_x - u' t_z = u' r_3·X - r_1·X`` with normalised ``u' = (u - c_x) / f_x``, same for y), so depth comes
-    from the spread of all inliers instead of being traded against rotation as in 6-DoF PnP, which on
-    small objects puts z tens of mm off.
 
-    Returns
-    -------
-    t : (3,) or None when fewer than ``min_inliers`` agree
-    inliers : indices into the correspondences
+def background_similarity(sims_per_pair: list[np.ndarray]) -> float:
+    """A query's background similarity: the median over (view, roll) pairs of their mean match similarity.
+
+    Windowed mutual NN matches every view about equally often; what tells the right view apart is how much
+    more similar its (inlier) matches are than this level ('*excess' scorings). It needs many pairs to be a
+    background: with fewer than :data:`MIN_BACKGROUND_PAIRS` (e.g. a one-view reference set) it is 0.
     """
-    n = len(pts2d)
-    if n < max(min_inliers, 2):
-        return None, np.zeros(0, int)
-    un = (pts2d[:, 0] - K[0, 2]) / K[0, 0]
-    vn = (pts2d[:, 1] - K[1, 2]) / K[1, 1]
-    RX = pts3d @ np.asarray(R, np.float64).T
-    A = np.zeros((n, 2, 3))
-    A[:, 0, 0], A[:, 0, 2] = 1.0, -un
-    A[:, 1, 1], A[:, 1, 2] = 1.0, -vn
-    b = np.stack([un * RX[:, 2] - RX[:, 0], vn * RX[:, 2] - RX[:, 1]], axis=1)
+    means = [float(np.mean(s)) for s in sims_per_pair if len(s)]
+    return float(np.median(means)) if len(means) >= MIN_BACKGROUND_PAIRS else 0.0
 
-    def fit(idx):
-        sol, *_ = np.linalg.lstsq(A[idx].reshape(-1, 3), b[idx].reshape(-1), rcond=None)
-        return sol
 
-    def inliers_of(t):
-        Xc = RX + t
-        z = Xc[:, 2]
-        ok = z > 1e-6
-        uv = np.full((n, 2), np.inf)
-        uv[ok] = (Xc[ok, :2] / z[ok, None]) * [K[0, 0], K[1, 1]] + [K[0, 2], K[1, 2]]
-        return np.nonzero(np.linalg.norm(uv - pts2d, axis=1) < threshold_px)[0]
+def pair_rank_score(sims: np.ndarray, background: float, ranking: str) -> float:
+    """How strongly a (view, roll) pair's matches support it before PnP (``pose.candidate_ranking``).
 
-    rng = np.random.default_rng(seed)
-    best = np.zeros(0, int)
-    for _ in range(int(iterations)):
-        t = fit(rng.choice(n, 2, replace=False))
-        inl = inliers_of(t)
-        if len(inl) > len(best):
-            best = inl
-    if len(best) < min_inliers:
-        return None, best
-    for _ in range(3):  # least squares on the consensus, then re-collect inliers
-        t = fit(best)
-        inl = inliers_of(t)
-        if len(inl) < min_inliers:
-            break
-        best = inl
-    return fit(best), best
+    'excess' (default): summed similarity above the query's ``background`` level; 'count': the number of
+    matches, which hardly separates views for windowed NN (every pair gets 60-100 matches on LM-O).
+    """
+    if ranking == "count":
+        return float(len(sims))
+    if ranking == "excess":
+        return float(np.clip(sims - background, 0.0, None).sum()) + 1e-6 * len(sims)
+    raise ConfigError(f"pose.candidate_ranking must be 'excess' or 'count', got {ranking!r}")
+
+
+def hypothesis_score(scoring: str, n_inliers: int, inlier_sims: np.ndarray, background: float,
+                     rot_to_ref_deg: float, iou: float) -> float:
+    """Score of one PnP solution (``pose.scoring``, see :class:`pixie.config.PoseConfig`).
+
+    The support is the inlier count ('inliers', 'combined'), the summed inlier similarity ('similarity',
+    'combined_similarity') or that sum above the query's ``background`` ('excess', 'combined_excess'; plus a
+    tiny inlier term: ties break by support and a valid pose never scores 0, i.e. 'failed'). The 'combined*'
+    scorings multiply it by exp(-(rot/35°)²) of the angle to the reference view the solution came from
+    (matching only works between similar viewpoints: this penalises flips) and by 0.25 + 0.75 IoU of the
+    projected and observed boxes.
+    """
+    sim_sum = float(inlier_sims.sum())
+    excess = max(0.0, float(np.sum(inlier_sims - background))) + 1e-3 * n_inliers
+    support = {"inliers": float(n_inliers), "combined": float(n_inliers),
+               "similarity": sim_sum, "combined_similarity": sim_sum,
+               "excess": excess, "combined_excess": excess}.get(scoring)
+    if support is None:
+        raise ConfigError(f"pose.scoring must be one of {', '.join(repr(x) for x in SCORINGS)}, got {scoring!r}")
+    if scoring.startswith("combined"):
+        return support * float(np.exp(-((rot_to_ref_deg / 35.0) ** 2))) * (0.25 + 0.75 * iou)
+    return support

@@ -40,18 +40,6 @@ def load_image(path: str | Path) -> np.ndarray:
     return img[..., ::-1].copy()
 
 
-def check_query_image(image: np.ndarray) -> np.ndarray:
-    """Accept (H, W) or (H, W, 3|4) uint8 images; return RGB (H, W, 3)."""
-    image = np.asarray(image)
-    if image.dtype != np.uint8:
-        raise ImageError(f"query image must be uint8, got {image.dtype}")
-    if image.ndim == 2:
-        image = np.repeat(image[..., None], 3, axis=2)
-    if image.ndim != 3 or image.shape[2] not in (3, 4) or min(image.shape[:2]) < 8:
-        raise ImageError(f"query image must be HxW, HxWx3 or HxWx4 and at least 8 px, got shape {image.shape}")
-    return image[..., :3]
-
-
 def bbox_from_mask(mask: np.ndarray) -> np.ndarray:
     """(x, y, w, h) box of a boolean mask; ImageError when the mask is empty."""
     ys, xs = np.nonzero(mask)

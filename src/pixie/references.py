@@ -21,15 +21,17 @@ import zipfile
 import zlib
 from dataclasses import dataclass, field
 from pathlib import Path
-from typing import Callable
+from typing import Callable, Sequence
 
 import numpy as np
 
-from pixie import __version__
+from pixie._version import __version__
 from pixie.camera import backproject, backproject_depth, invert_T, transform_points
 from pixie.config import RefsConfig
 from pixie.encode import check_encodings, encode
 from pixie.errors import ReferenceSetError
+from pixie.features import Features, pack_features, unpack_features
+from pixie.geometry import nearest_pixel
 from pixie.mesh import Mesh, from_arrays
 from pixie.render import Renderer
 from pixie.views import camera_distance, roll, roll_angles, square_crop_K, start_K, view_poses
@@ -50,8 +52,10 @@ class ReferenceSet:
     depth : (V, S, S) float32, roll 0, mm (0 = background)
     normals : (V, S, S, 3) float32, roll 0, camera frame
     encodings : name -> (V, S, S[, 3]) uint8 (roll 0) or (V, R, S, S[, 3]) when all rolls are kept
-    features : key "matcher/encoding" -> packed arrays (see :mod:`pixie.matching`), one entry per
-        (view, roll) in row-major order, plus "xyz" (object-space point of each keypoint, NaN off-mask)
+    features : key "matcher/encoding" -> packed arrays (:func:`pixie.features.pack_features`), one entry per
+        (view, roll) in row-major order, plus "xyz" (object-space point of each keypoint, NaN off-mask).
+        Read them with :meth:`features_for`, write them with :meth:`set_features`: the packing is this
+        class's contract, nobody else's.
     """
 
     mesh: Mesh
@@ -105,6 +109,42 @@ class ReferenceSet:
         """How many rolls per view have stored features (all rolls, or 1 when only roll 0 was extracted)."""
         n = len(self.features[self.feature_key(matcher, encoding)]["feat_image_sizes"])
         return self.n_rolls if n == self.n_views * self.n_rolls else 1
+
+    def set_features(self, matcher: str, encoding: str, features: Sequence[Features],
+                     xyz: Sequence[np.ndarray]) -> None:
+        """Store one :class:`~pixie.features.Features` and its keypoints' object XYZ ``(N, 3)`` per image,
+        images in (view, roll) row-major order; replaces what was stored for (``matcher``, ``encoding``)."""
+        if len(features) != len(xyz):
+            raise ReferenceSetError(f"{len(features)} feature sets but {len(xyz)} XYZ arrays")
+        packed = pack_features(features)
+        packed["xyz"] = np.concatenate(xyz).astype(np.float32) if len(xyz) else np.zeros((0, 3), np.float32)
+        self.features[self.feature_key(matcher, encoding)] = packed
+
+    def features_for(self, matcher: str, encoding: str) -> tuple[list[Features], list[np.ndarray]]:
+        """The stored features of ``matcher`` on ``encoding`` images and each keypoint's object XYZ.
+
+        Returns
+        -------
+        features : list of Features
+            One per stored image, (view, roll) row-major: ``V * feature_rolls`` entries.
+        xyz : list of (N_k, 3) float32
+            Object-space point (mm) under each keypoint of ``features[k]``; NaN off the object.
+
+        Raises
+        ------
+        ReferenceSetError
+            When the set holds no such features (``add_features`` extracts them), or they are inconsistent.
+        """
+        key = self.feature_key(matcher, encoding)
+        if key not in self.features:
+            raise ReferenceSetError(f"reference set has no {matcher} features of {encoding!r} images "
+                                    f"(stored: {sorted(self.features) or 'none'})")
+        packed = self.features[key]
+        feats = unpack_features(packed)
+        if "xyz" not in packed or len(packed["xyz"]) != sum(len(f) for f in feats):
+            raise ReferenceSetError(f"features {key!r} lack the XYZ of their keypoints: rebuild the set")
+        offs = np.cumsum([0] + [len(f) for f in feats])
+        return feats, [packed["xyz"][offs[k]:offs[k + 1]] for k in range(len(feats))]
 
 
 def build_reference_set(
@@ -171,12 +211,8 @@ def build_reference_set(
 
 
 def _store_features(refs: ReferenceSet, matcher_name: str, feats: dict, xyzs: dict) -> None:
-    from pixie.matching import pack_features
-
     for e in feats:
-        packed = pack_features(feats[e])
-        packed["xyz"] = np.concatenate(xyzs[e]).astype(np.float32) if xyzs[e] else np.zeros((0, 3), np.float32)
-        refs.features[refs.feature_key(matcher_name, e)] = packed
+        refs.set_features(matcher_name, e, feats[e], xyzs[e])
 
 
 _WORKER_STATE: dict = {}
@@ -270,11 +306,9 @@ def _iter_rendered_views(mesh: Mesh, cfg: RefsConfig, base: np.ndarray, K0: np.n
 def keypoint_xyz_from_depth(depth: np.ndarray, K: np.ndarray, T_cam_from_obj: np.ndarray,
                             keypoints: np.ndarray) -> np.ndarray:
     """Object-space point under each keypoint's nearest pixel (back-projected depth); NaN on background."""
-    h, w = depth.shape
     if len(keypoints) == 0:
         return np.zeros((0, 3), np.float32)
-    c = np.clip(np.rint(keypoints[:, 0]).astype(int), 0, w - 1)
-    r = np.clip(np.rint(keypoints[:, 1]).astype(int), 0, h - 1)
+    c, r = nearest_pixel(keypoints, depth.shape)
     z = depth[r, c].astype(np.float64)
     X = transform_points(invert_T(T_cam_from_obj), backproject(K, np.stack([c, r], 1).astype(np.float64), z))
     X[z <= 0] = np.nan

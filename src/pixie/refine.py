@@ -8,18 +8,19 @@ right, in the photo's own perspective. Matching the query against that render is
 (the reference at the true view) as soon as the hypothesis is close; PnP on its matches gives the next
 hypothesis.
 
-Functions here are pure: the estimator owns the loop (:meth:`pixie.estimator.PoseEstimator._render_refine`).
+Functions here are pure: the estimator owns the loop (:meth:`pixie.estimator.PoseEstimator.render_refine`).
 """
 
 from __future__ import annotations
 
-from contextlib import contextmanager
 from dataclasses import dataclass
 
 import numpy as np
 
 from pixie.encode import encode
 from pixie.errors import CameraError
+from pixie.geometry import lookup
+from pixie.pose import lift
 from pixie.query import QueryCrop
 from pixie.render import Renderer
 
@@ -72,78 +73,27 @@ def keypoint_xyz(xyz: np.ndarray, keypoints: np.ndarray) -> np.ndarray:
     """Object point under each keypoint's nearest pixel of an :class:`AlignedRender` (NaN off the object)."""
     if len(keypoints) == 0:
         return np.zeros((0, 3), np.float32)
-    h, w = xyz.shape[:2]
-    c = np.clip(np.rint(keypoints[:, 0]).astype(int), 0, w - 1)
-    r = np.clip(np.rint(keypoints[:, 1]).astype(int), 0, h - 1)
-    return xyz[r, c]
+    return lookup(xyz, keypoints)
 
 
-@contextmanager
-def matcher_window(matcher, window_px: float | None):
-    """Temporarily narrow a nearest-neighbour matcher's spatial window (no-op for other backends)."""
-    assigner = getattr(matcher, "assigner", None)
-    if window_px is None or assigner is None or not hasattr(assigner, "window"):
-        yield
-        return
-    old = assigner.window
-    assigner.window = float(window_px)
-    try:
-        yield
-    finally:
-        assigner.window = old
-
-
-def aligned_correspondences(matcher, query_feats, crop: QueryCrop, aligned: AlignedRender,
-                            window_px: float | None = None) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+def aligned_correspondences(matcher, query_feats, crop: QueryCrop,
+                            aligned: AlignedRender) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
     """2D (photo px) – 3D (object mm) correspondences and similarities, query crop vs. its aligned render.
 
-    All encodings of ``aligned`` are matched and concatenated; render keypoints off the object are dropped.
+    All encodings of ``aligned`` are matched and concatenated; render keypoints off the object are dropped
+    (:func:`pixie.pose.lift`).
     """
     p2s, p3s, scs = [], [], []
     for img in aligned.images.values():
         rf = matcher.extract(img, mask=aligned.mask)
         if len(rf.keypoints) == 0:
             continue
-        X = keypoint_xyz(aligned.xyz, rf.keypoints)
-        with matcher_window(matcher, window_px):
-            m = matcher.match(query_feats, rf)
-        keep = np.all(np.isfinite(X[m.idx_r]), axis=1)
-        if not np.any(keep):
+        p2, p3, sc = lift(query_feats.keypoints, keypoint_xyz(aligned.xyz, rf.keypoints), matcher.match(query_feats, rf))
+        if not len(p2):
             continue
-        p2s.append(crop.to_original(query_feats.keypoints[m.idx_q[keep]].astype(np.float64)))
-        p3s.append(X[m.idx_r[keep]].astype(np.float64))
-        scs.append(m.scores[keep].astype(np.float64))
+        p2s.append(crop.to_original(p2))
+        p3s.append(p3)
+        scs.append(sc)
     if not p2s:
         return np.zeros((0, 2)), np.zeros((0, 3)), np.zeros(0)
     return np.concatenate(p2s), np.concatenate(p3s), np.concatenate(scs)
-
-
-def pose_from_reference(T_ref: np.ndarray, K: np.ndarray, box_xyxy: np.ndarray, centre: np.ndarray,
-                        box_points: np.ndarray) -> np.ndarray:
-    """A reference view's pose moved into the photo: its object centre on the ray through the box centre.
-
-    References look at the object centre along their optical axis; the query sees it along the ray ``d``
-    through the box centre. The reference rotation is turned by the smallest rotation taking the optical axis
-    to ``d`` (so the in-plane roll is kept), and the distance is set so that the projected model box has the
-    size of ``box_xyxy`` (:func:`pixie.pose.depth_from_box`).
-    """
-    from pixie.pose import depth_from_box
-
-    u = 0.5 * (box_xyxy[0] + box_xyxy[2]) - 0.5
-    v = 0.5 * (box_xyxy[1] + box_xyxy[3]) - 0.5
-    d = np.linalg.solve(np.asarray(K, np.float64), np.array([u, v, 1.0]))
-    d /= np.linalg.norm(d)
-    z = np.array([0.0, 0.0, 1.0])
-    axis = np.cross(z, d)
-    s, c = np.linalg.norm(axis), float(np.dot(z, d))
-    if s < 1e-12:
-        R_align = np.eye(3)
-    else:
-        k = axis / s
-        Kx = np.array([[0, -k[2], k[1]], [k[2], 0, -k[0]], [-k[1], k[0], 0]])
-        R_align = np.eye(3) + s * Kx + (1 - c) * Kx @ Kx
-    T = np.eye(4)
-    T[:3, :3] = R_align @ T_ref[:3, :3]
-    dist = float(np.linalg.norm(T_ref[:3, 3] + T_ref[:3, :3] @ centre))
-    T[:3, 3] = d * dist - T[:3, :3] @ centre
-    return depth_from_box(T, K, box_points, box_xyxy)

@@ -1,19 +1,29 @@
-"""Run the estimator over a BOP dataset: cached reference sets, resumable per-target results, BOP CSV."""
+"""Run the estimator over a BOP dataset: cached reference sets, resumable per-target results, BOP CSV.
+
+The building blocks are shared by ``pixie run``, the demo and the benchmark scripts in ``bench/``:
+
+* :func:`make_matcher` -- the matcher of a config (one place: :func:`pixie.matching.matcher_from_config`);
+* :func:`cached_reference_set` -- load-or-build a reference set in a cache folder, safe for several processes;
+* :class:`Journal` -- an append-only JSON-lines record of finished work, so interrupted loops resume.
+"""
 
 from __future__ import annotations
 
 import hashlib
 import json
 import logging
+import os
 import time
 from pathlib import Path
-from typing import Callable
+from typing import Callable, Hashable
 
 import numpy as np
 
 from pixie.config import PixieConfig
-from pixie.datasets import BopDataset, PoseEstimate, Target, write_results_csv
 from pixie.errors import PixieError, ReferenceSetError
+from pixie.estimator import PoseEstimator
+from pixie.eval.datasets import BopDataset, PoseEstimate, Target, write_results_csv
+from pixie.matching import Matcher, matcher_from_config
 from pixie.mesh import Mesh, load_mesh
 from pixie.references import ReferenceSet, build_reference_set, load_reference_set, save_reference_set
 
@@ -21,32 +31,110 @@ log = logging.getLogger(__name__)
 
 
 def refs_key(mesh: Mesh, cfg: PixieConfig) -> str:
-    """Short hash of everything a reference set depends on: mesh bytes, refs config, matcher."""
-    blob = json.dumps({"mesh": mesh.source_hash, "refs": cfg.to_dict()["refs"], "matcher": cfg.match.matcher,
-                       "kp": cfg.match.max_keypoints, "det": cfg.match.detection_threshold}, sort_keys=True)
+    """Short hash of everything a reference set depends on: mesh bytes, refs config, the matcher's extraction."""
+    m = cfg.match
+    blob = json.dumps({"mesh": mesh.source_hash, "refs": cfg.to_dict()["refs"], "matcher": m.matcher,
+                       "kp": m.max_keypoints, "det": m.detection_threshold, "weights": m.weights_dir}, sort_keys=True)
     return hashlib.sha256(blob.encode()).hexdigest()[:12]
 
 
-def make_matcher(cfg: PixieConfig, size: int | None = None):
+def make_matcher(cfg: PixieConfig, size: int | None = None) -> Matcher:
     """The matcher of ``cfg.match`` for references of side ``size`` (default ``cfg.refs.size``)."""
-    from pixie.matching import matcher_from_config
-
     return matcher_from_config(cfg.match, size or cfg.refs.size)
 
 
-def cached_reference_set(mesh: Mesh, cfg: PixieConfig, cache_dir: str | Path, matcher=None,
-                         progress: Callable[[int, int], None] | None = None, workers: int = 1) -> ReferenceSet:
-    """Load the reference set of ``mesh`` for ``cfg`` from ``cache_dir``, building (and saving) it if absent."""
-    path = Path(cache_dir) / f"{mesh.name}-{refs_key(mesh, cfg)}.npz"
-    if path.exists():
+def reference_cache_path(mesh: Mesh, cfg: PixieConfig, cache_dir: str | Path) -> Path:
+    """Where :func:`cached_reference_set` keeps the set of ``mesh`` for ``cfg``."""
+    return Path(cache_dir) / f"{mesh.name}-{refs_key(mesh, cfg)}.npz"
+
+
+def cached_reference_set(mesh: Mesh, cfg: PixieConfig, cache_dir: str | Path, matcher: Matcher | None = None,
+                         progress: Callable[[int, int], None] | None = None, workers: int = 1,
+                         echo: Callable[[str], None] | None = None, poll_s: float = 5.0) -> ReferenceSet:
+    """Load the reference set of ``mesh`` for ``cfg`` from ``cache_dir``, building (and saving) it if absent.
+
+    Several processes may share a cache: the first to need a set builds it under a lock file
+    (``<set>.lock``) while the others wait for it (polling every ``poll_s`` seconds). A stale lock of a
+    killed builder must be removed by hand (the message names it).
+    """
+    path = reference_cache_path(mesh, cfg, cache_dir)
+    path.parent.mkdir(parents=True, exist_ok=True)
+    lock = path.with_suffix(".lock")
+    owner = False
+    if not path.is_file():
         try:
-            return load_reference_set(path, mesh=mesh)
-        except ReferenceSetError as exc:
-            log.warning("rebuilding %s: %s", path, exc)
-    matcher = matcher or make_matcher(cfg)
-    refs = build_reference_set(mesh, cfg.refs, matcher=matcher, progress=progress, workers=workers)
-    save_reference_set(refs, path)
-    return refs
+            os.close(os.open(lock, os.O_CREAT | os.O_EXCL))
+            owner = True
+        except FileExistsError:
+            if echo:
+                echo(f"waiting for {path.name}, being built by another process (else delete {lock})")
+            while lock.exists() and not path.is_file():
+                time.sleep(poll_s)
+    try:
+        if path.is_file():
+            try:
+                return load_reference_set(path, mesh=mesh)
+            except ReferenceSetError as exc:
+                log.warning("rebuilding %s: %s", path, exc)
+        matcher = matcher or make_matcher(cfg)
+        t0 = time.perf_counter()
+        if echo:
+            echo(f"building references of {mesh.name} ({path.name}) ...")
+        refs = build_reference_set(mesh, cfg.refs, matcher=matcher, progress=progress, workers=workers)
+        save_reference_set(refs, path)
+        if echo:
+            echo(f"built {mesh.name} in {time.perf_counter() - t0:.0f} s")
+        return refs
+    finally:
+        if owner:
+            lock.unlink(missing_ok=True)
+
+
+class Journal:
+    """An append-only JSON-lines file of finished work: the resumable loop of pixie's runs and benchmarks.
+
+    Each line is one JSON record; ``key(record)`` names the work it finishes (the last record of a key wins).
+    A line cut by a kill is skipped, so that work runs again.
+
+    >>> j = Journal(out / "targets.jsonl", key=lambda r: (r["scene_id"], r["im_id"], r["obj_id"]))
+    >>> for t in targets:
+    ...     if (t.scene_id, t.im_id, t.obj_id) not in j:
+    ...         j.append(run(t))
+    """
+
+    def __init__(self, path: str | Path, key: Callable[[dict], Hashable]):
+        self.path = Path(path)
+        self.key = key
+        self.records: dict[Hashable, dict] = {}
+        self._cut = False  # the file ends inside a line (a killed write): the next record starts a new line
+        if self.path.is_file():
+            text = self.path.read_text()
+            self._cut = bool(text) and not text.endswith("\n")
+            for line in text.splitlines():
+                try:
+                    rec = json.loads(line)
+                    self.records[key(rec)] = rec
+                except (ValueError, KeyError, TypeError):  # a line cut by a kill: run that work again
+                    continue
+
+    def __contains__(self, key: Hashable) -> bool:
+        return key in self.records
+
+    def __len__(self) -> int:
+        return len(self.records)
+
+    def get(self, key: Hashable, default: dict | None = None) -> dict | None:
+        return self.records.get(key, default)
+
+    def append(self, record: dict) -> dict:
+        """Write ``record`` as one line (flushed) and remember it."""
+        self.path.parent.mkdir(parents=True, exist_ok=True)
+        with open(self.path, "a") as fh:
+            fh.write(("\n" if self._cut else "") + json.dumps(record) + "\n")
+            fh.flush()
+        self._cut = False
+        self.records[self.key(record)] = record
+        return record
 
 
 def run_dataset(dataset_root: str | Path, out_dir: str | Path, config: PixieConfig | None = None,
@@ -58,8 +146,6 @@ def run_dataset(dataset_root: str | Path, out_dir: str | Path, config: PixieConf
     Per-target results are appended to ``out_dir/per_target.jsonl`` as they come, so an interrupted
     run resumes where it stopped. Returns the path of the BOP CSV.
     """
-    from pixie.estimator import PoseEstimator
-
     cfg = config or PixieConfig()
     ds = BopDataset(dataset_root)
     out = Path(out_dir)
@@ -68,27 +154,23 @@ def run_dataset(dataset_root: str | Path, out_dir: str | Path, config: PixieConf
     targets = [t for t in ds.targets() if objects is None or t.obj_id in objects]
     if max_targets is not None and len(targets) > max_targets:
         targets = [targets[i] for i in np.linspace(0, len(targets) - 1, max_targets).round().astype(int)]
-    jsonl = out / "per_target.jsonl"
-    done = _read_done(jsonl)
-    todo = [t for t in targets if _tkey(t) not in done]
+    journal = Journal(out / "per_target.jsonl", key=lambda rec: tuple(rec["key"]))
+    todo = [t for t in targets if _tkey(t) not in journal]
     echo(f"{len(targets)} targets, {len(targets) - len(todo)} cached, {len(todo)} to run -> {out}")
     (out / "config.json").write_text(json.dumps(cfg.to_dict(), indent=1))
     bar = _progress(len(todo), show_progress)
     matcher = make_matcher(cfg) if todo else None
-    with open(jsonl, "a") as fh:
-        for obj_id in sorted({t.obj_id for t in todo}):
-            mesh = load_mesh(ds.model_path(obj_id))
-            t0 = time.perf_counter()
-            refs = cached_reference_set(mesh, cfg, refs_dir, matcher=matcher)
-            echo(f"obj {obj_id}: reference set ready in {time.perf_counter() - t0:.1f} s")
-            est = PoseEstimator(refs, cfg, matcher=matcher)
-            for t in (t for t in todo if t.obj_id == obj_id):
-                fh.write(json.dumps(_run_target(ds, est, t)) + "\n")
-                fh.flush()
-                bar.update(1)
+    for obj_id in sorted({t.obj_id for t in todo}):
+        mesh = load_mesh(ds.model_path(obj_id))
+        t0 = time.perf_counter()
+        refs = cached_reference_set(mesh, cfg, refs_dir, matcher=matcher)
+        echo(f"obj {obj_id}: reference set ready in {time.perf_counter() - t0:.1f} s")
+        est = PoseEstimator(refs, cfg, matcher=matcher)
+        for t in (t for t in todo if t.obj_id == obj_id):
+            journal.append(_run_target(ds, est, t))
+            bar.update(1)
     bar.close()
-    done = _read_done(jsonl)
-    ests = [e for t in targets for e in done.get(_tkey(t), [])]
+    ests = [dict(e, key=_tkey(t)) for t in targets for e in journal.get(_tkey(t), {"estimates": []})["estimates"]]
     csv = out / "results.csv"
     write_results_csv(csv, [_estimate(e) for e in ests if e["T"] is not None])  # a missing pose counts as a miss
     return csv
@@ -115,19 +197,6 @@ def _run_target(ds: BopDataset, est, t: Target) -> dict:
 
 def _tkey(t: Target) -> tuple[int, int, int]:
     return (t.scene_id, t.im_id, t.obj_id)
-
-
-def _read_done(jsonl: Path) -> dict[tuple[int, int, int], list[dict]]:
-    done: dict[tuple[int, int, int], list[dict]] = {}
-    if jsonl.exists():
-        for line in jsonl.read_text().splitlines():
-            try:
-                rec = json.loads(line)
-            except ValueError:  # a line cut by a kill: run that target again
-                continue
-            k = tuple(rec["key"])
-            done[k] = [dict(e, key=k) for e in rec["estimates"]]
-    return done
 
 
 def _estimate(e: dict) -> PoseEstimate:

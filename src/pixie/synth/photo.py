@@ -30,7 +30,7 @@ import cv2
 import numpy as np
 
 from pixie.camera import validate_K, validate_pose
-from pixie.render import Renderer, RenderResult, composite
+from pixie.render import RenderResult, Renderer, composite
 
 __all__ = [
     "Material",

@@ -23,10 +23,14 @@ same pose places it exactly.
 
 Everything is deterministic given ``seed``. :func:`tiny_defect_dataset` makes a 2-scene set in
 about a second for tests and demos.
+
+Longer than 500 lines on purpose: scene composition, its BOP writer and the Table I summary share one
+seeded generator state, and the writer is the only consumer of the composition.
 """
 
 from __future__ import annotations
 
+import argparse
 import json
 import shutil
 import time
@@ -37,13 +41,13 @@ import cv2
 import numpy as np
 
 from pixie.camera import look_at, make_K
+from pixie.eval.shape import aps, iou3d
 from pixie.mesh import Mesh, from_arrays
-from pixie.metrics import aps, iou3d
 from pixie.render import Renderer, composite
 from pixie.synth.assemblies import (
     Assembly,
-    brick_part,
     bracket_part,
+    brick_part,
     cylinder_part,
     make_target_assembly,
     part_palette,
@@ -51,7 +55,7 @@ from pixie.synth.assemblies import (
     shaft_part,
 )
 from pixie.synth.defects import make_defects
-from pixie.synth.photo import Material, random_background, random_color, degrade, render_rgb
+from pixie.synth.photo import Material, degrade, random_background, random_color, render_rgb
 
 WIDTH, HEIGHT = 640, 480
 DEPTH_SCALE = 0.1  # mm per depth-PNG unit
@@ -559,8 +563,6 @@ def tiny_defect_dataset(out_dir: str | Path, seed: int = 0, images_per_variant: 
 
 def main(argv=None) -> int:
     """``python -m pixie.synth.scenes OUT [--tiny] [--assemblies 3 --defects 3 --colours 3 --images 4 --seed 0]``"""
-    import argparse
-
     ap = argparse.ArgumentParser(description="Generate the synthetic assembly-defects benchmark (BOP format).")
     ap.add_argument("out", type=Path)
     ap.add_argument("--tiny", action="store_true", help="the 2-scene 320x240 set of tests and demos")

@@ -39,7 +39,11 @@ import torch
 import torch.nn.functional as F
 from torch import nn
 
-from pixie.adapter import DescriptorAdapter, load_adapter, shipped_adapter_path
+from pixie.features import Features
+from pixie.geometry import check_image
+from pixie.matching.adapter import DescriptorAdapter, aliked_extract, load_adapter, shipped_adapter_path
+from pixie.matching.aliked import AlikedExtractor
+from pixie.synth.pairs import make_pair
 
 __all__ = [
     "DescriptorAdapter",
@@ -65,8 +69,6 @@ class AlikedDense:
     """ALIKED-n16 (pixie's weights) giving detections and descriptors at arbitrary pixel positions."""
 
     def __init__(self, model: str = "aliked-n16", max_keypoints: int = 1024):
-        from pixie.matching import AlikedExtractor
-
         self.ext = AlikedExtractor(torch.device("cpu"), model=model, max_keypoints=max_keypoints, allow_download=False)
         self.net = self.ext.net
 
@@ -74,9 +76,6 @@ class AlikedDense:
                  grid: int = 0):
         """Features (detections [+ grid inside the mask]) and descriptors at ``extra_xy`` (or a describer
         function on the same feature map with ``extra_xy="describer"``); one backbone pass."""
-        from pixie.adapter import aliked_extract
-        from pixie.matching import Features, check_image
-
         img = check_image(rgb)
         kp, desc, sc, extra = aliked_extract(self.net, img, mask, grid, extra_xy)
         return Features(kp, desc, sc, img.shape[:2]), extra
@@ -112,8 +111,6 @@ def extract_pair(pair, dense: AlikedDense, encoding: str, grid: int = 6) -> dict
 def build_cache(seeds, out_dir: str | Path, pair_cfg=None, encodings_per_pair: int = 1, grid: int = 6,
                 enc_probs: dict[str, float] | None = None, log=print) -> list[Path]:
     """Make pairs for ``seeds`` and write one ``pair_<seed>_<enc>.npz`` each (existing files are kept)."""
-    from pixie.synth.pairs import make_pair
-
     out_dir = Path(out_dir)
     out_dir.mkdir(parents=True, exist_ok=True)
     probs = enc_probs or {"shade3_edges": 0.5, "depth": 0.25, "normal": 0.25}

@@ -1,6 +1,6 @@
 """Descriptor adapters: small learned maps applied to a frozen extractor's descriptors.
 
-``aliked-ft-nn`` (see :mod:`pixie.matching`) is ALIKED-n16 whose descriptors go through the
+``aliked-ft-nn`` (see :mod:`pixie.matching.registry`) is ALIKED-n16 whose descriptors go through the
 :class:`DescriptorAdapter` shipped in ``pixie/data/weights/aliked_n16_geoadapter.pt``, trained on synthetic
 photo <-> geometry-render pairs of procedural parts (:mod:`pixie.train.finetune`; model card next to the
 weights). The same adapter is applied to query photos and to reference renders.
@@ -16,6 +16,9 @@ import torch.nn.functional as F
 from torch import nn
 
 from pixie.errors import WeightsError
+from pixie.features import Features
+from pixie.geometry import check_image, check_mask, in_mask
+from pixie.matching.aliked import AlikedExtractor
 
 DEFAULT_ADAPTER = "aliked_n16_geoadapter"
 
@@ -54,7 +57,7 @@ class DescriptorAdapter(nn.Module):
 
 def shipped_adapter_path(name: str = DEFAULT_ADAPTER) -> Path:
     """``pixie/data/weights/<name>.pt`` inside the installed package."""
-    return Path(__file__).resolve().parent / "data" / "weights" / f"{name}.pt"
+    return Path(__file__).resolve().parents[1] / "data" / "weights" / f"{name}.pt"
 
 
 def load_adapter(path: str | Path | None = None, device: torch.device | str = "cpu") -> DescriptorAdapter:
@@ -111,9 +114,7 @@ def aliked_extract(net, rgb: np.ndarray, mask: np.ndarray | None = None, grid: i
     kp = (wh * (kps[0] + 1) / 2).float().cpu().numpy()
     sc = scores[0].float().cpu().numpy()
     if mask is not None:  # drop detections off the mask (nearest pixel), as pixie's extractors do
-        ix = np.clip(np.rint(kp[:, 0]).astype(int), 0, w - 1)
-        iy = np.clip(np.rint(kp[:, 1]).astype(int), 0, h - 1)
-        on = mask[iy, ix]
+        on = in_mask(kp, mask)
         kp, sc = kp[on], sc[on]
         if grid and grid > 0:
             g = grid_points(mask, int(grid), avoid=kp)
@@ -145,8 +146,6 @@ class GridAlikedExtractor:
     def __init__(self, device: torch.device, *, max_keypoints: int = 1024, detection_threshold: float | None = 0.0,
                  grid: int = 0, adapter: DescriptorAdapter | None = None, weights=None, allow_download: bool = False,
                  model: str = "aliked-n16"):
-        from pixie.matching import AlikedExtractor
-
         self._base = AlikedExtractor(device, model=model, max_keypoints=max_keypoints,
                                      detection_threshold=detection_threshold, weights=weights,
                                      allow_download=allow_download)
@@ -157,8 +156,6 @@ class GridAlikedExtractor:
         self.dim = self._base.dim if adapter is None else adapter.dim
 
     def __call__(self, image: np.ndarray, mask: np.ndarray | None = None):
-        from pixie.matching import Features, check_image, check_mask
-
         rgb = check_image(image)
         h, w = rgb.shape[:2]
         m = check_mask(mask, (h, w))
@@ -168,21 +165,3 @@ class GridAlikedExtractor:
         if self.adapter is not None:
             desc = self.adapter.apply_np(desc)
         return Features(kp, desc, sc, (h, w))
-
-
-class AdaptedExtractor:
-    """Wraps a pixie extractor: same keypoints, descriptors passed through an adapter.
-
-    Behaves like :class:`pixie.matching.Extractor` (``__call__(image, mask) -> Features``, ``dim``, ``device``).
-    """
-
-    def __init__(self, inner, adapter: DescriptorAdapter):
-        self.inner = inner
-        self.adapter = adapter.to(inner.device).eval()
-        self.device = inner.device
-        self.dim = adapter.dim
-
-    def __call__(self, image: np.ndarray, mask: np.ndarray | None = None):
-        f = self.inner(image, mask)
-        f.descriptors = self.adapter.apply_np(f.descriptors)
-        return f

@@ -19,6 +19,9 @@ Result files are BOP'19 CSV: ``scene_id,im_id,obj_id,score,R,t,time`` with R nin
 values and t three values in mm, both space-separated.
 
 Every problem with a file raises :class:`pixie.errors.DatasetError` naming the file.
+
+Longer than 500 lines on purpose: it is the one reader and writer of one file format (records, the
+dataset class, result files), and splitting it would spread BOP's conventions over several modules.
 """
 
 from __future__ import annotations
@@ -29,9 +32,11 @@ from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any, Iterable
 
+import cv2
 import numpy as np
 
 from pixie.errors import DatasetError
+from pixie.geometry import rodrigues
 
 RESULTS_HEADER = "scene_id,im_id,obj_id,score,R,t,time"
 # Tolerance on |R R^T - I| for rotations read from result files. BOP files carry ~6-8
@@ -179,28 +184,6 @@ def pose_from_Rt(R: Iterable[float], t: Iterable[float]) -> np.ndarray:
     return T
 
 
-def orthonormalize(T: np.ndarray) -> np.ndarray:
-    """Copy of a 4x4 pose whose rotation is replaced by the nearest proper rotation (SVD).
-
-    BOP poses (GT included) are stored with few decimals and are only approximately
-    orthonormal; the renderer requires exact rotations.
-    """
-    T = np.array(T, dtype=np.float64)
-    u, _, vt = np.linalg.svd(T[:3, :3])
-    if np.linalg.det(u @ vt) < 0:
-        u[:, -1] *= -1
-    T[:3, :3] = u @ vt
-    return T
-
-
-def rotation_about_axis(axis: np.ndarray, angle: float) -> np.ndarray:
-    """Rodrigues rotation matrix (3x3) of ``angle`` radians about ``axis`` (any length > 0)."""
-    a = np.asarray(axis, dtype=np.float64)
-    a = a / np.linalg.norm(a)
-    k = np.array([[0.0, -a[2], a[1]], [a[2], 0.0, -a[0]], [-a[1], a[0], 0.0]])
-    return np.eye(3) + math.sin(angle) * k + (1.0 - math.cos(angle)) * (k @ k)
-
-
 def is_symmetric(model_info: dict) -> bool:
     """True when models_info declares any discrete or continuous symmetry."""
     return bool(model_info.get("symmetries_discrete")) or bool(model_info.get("symmetries_continuous"))
@@ -238,7 +221,7 @@ def symmetry_transforms(model_info: dict, max_sym_disc_step: float = 0.01) -> np
         offset = np.asarray(s.get("offset", (0.0, 0.0, 0.0)), dtype=np.float64).reshape(3)
         n = int(math.ceil(math.pi / max_sym_disc_step))
         for i in range(n):
-            R = rotation_about_axis(axis, 2.0 * math.pi * i / n)
+            R = rodrigues(axis, 2.0 * math.pi * i / n)
             C = np.eye(4)
             C[:3, :3] = R
             C[:3, 3] = offset - R @ offset  # rotation about the axis through ``offset``
@@ -420,8 +403,6 @@ class BopDataset:
 
     def load_rgb(self, scene_id: int, im_id: int) -> np.ndarray:
         """RGB image (H, W, 3) uint8."""
-        import cv2
-
         p = self.image_path(scene_id, im_id)
         im = cv2.imread(str(p), cv2.IMREAD_COLOR)
         if im is None:
@@ -438,8 +419,6 @@ class BopDataset:
 
     def load_depth(self, scene_id: int, im_id: int) -> np.ndarray | None:
         """Depth (H, W) float32 in mm (0 = no measurement), or None if the dataset has none."""
-        import cv2
-
         p = self.depth_path(scene_id, im_id)
         if not p.is_file():
             return None
@@ -450,8 +429,6 @@ class BopDataset:
 
     def load_mask_visib(self, scene_id: int, im_id: int, gt_id: int) -> np.ndarray | None:
         """Visible-part mask (H, W) bool of one GT instance, or None if absent."""
-        import cv2
-
         p = self.scene_dir(scene_id) / "mask_visib" / f"{im_id:06d}_{gt_id:06d}.png"
         if not p.is_file():
             return None

@@ -11,21 +11,20 @@ import html
 import io
 import math
 from pathlib import Path
-from typing import TYPE_CHECKING
 
+import cv2
 import numpy as np
 
+from pixie.eval.datasets import BopDataset
+from pixie.eval.objects import ObjectData, load_object_data
+from pixie.eval.scores import Scores, TargetResult
+from pixie.eval.writers import format_table
+from pixie.geometry import orthonormalize
 from pixie.viz import EST_COLOR, GT_COLOR, draw_contours
-
-if TYPE_CHECKING:  # pragma: no cover
-    from pixie.datasets import BopDataset
-    from pixie.eval import ObjectData, Scores, TargetResult
 
 
 def png_base64(rgb: np.ndarray) -> str:
     """Encode an RGB uint8 image as a base64 PNG string."""
-    import cv2
-
     ok, buf = cv2.imencode(".png", cv2.cvtColor(np.ascontiguousarray(rgb), cv2.COLOR_RGB2BGR))
     if not ok:
         raise ValueError("PNG encoding failed")
@@ -41,7 +40,7 @@ def _fig_base64(fig) -> str:
     return base64.b64encode(bio.getvalue()).decode("ascii")
 
 
-def error_histograms(scores: "Scores", diameters: dict[int, float]) -> list[tuple[str, str]]:
+def error_histograms(scores: Scores, diameters: dict[int, float]) -> list[tuple[str, str]]:
     """Histograms of the per-target errors: list of (title, base64 PNG).
 
     MSSD and ADD family are shown relative to the diameter, MSPD in px, VSD as the mean over taus.
@@ -80,10 +79,8 @@ def error_histograms(scores: "Scores", diameters: dict[int, float]) -> list[tupl
     return out
 
 
-def overlay_target(dataset: "BopDataset", target: "TargetResult", renderer, pad: int = 40) -> np.ndarray:
+def overlay_target(dataset: BopDataset, target: TargetResult, renderer, pad: int = 40) -> np.ndarray:
     """RGB crop with the model contour at the GT (green) and at the estimate (red)."""
-    from pixie.datasets import orthonormalize
-
     rgb = dataset.load_rgb(target.scene_id, target.im_id)
     h, w = rgb.shape[:2]
     K = dataset.camera(target.scene_id, target.im_id).K
@@ -100,14 +97,12 @@ def overlay_target(dataset: "BopDataset", target: "TargetResult", renderer, pad:
         x0, x1 = max(xs.min() - pad, 0), min(xs.max() + pad + 1, w)
         img = img[y0:y1, x0:x1]
     if img.shape[0] < 160:  # small objects: enlarge the crop so the contours stay readable
-        import cv2
-
         f = int(math.ceil(160 / max(img.shape[0], 1)))
         img = cv2.resize(img, (img.shape[1] * f, img.shape[0] * f), interpolation=cv2.INTER_NEAREST)
     return img
 
 
-def _rank_key(t: "TargetResult", diameters: dict[int, float]) -> float:
+def _rank_key(t: TargetResult, diameters: dict[int, float]) -> float:
     for key, rel in (("mssd", True), ("ad", True), ("mspd", False), ("vsd", False), ("add", True)):
         if key in t.errors:
             v = t.errors[key]
@@ -115,7 +110,7 @@ def _rank_key(t: "TargetResult", diameters: dict[int, float]) -> float:
     return 0.0
 
 
-def _table_html(scores: "Scores") -> str:
+def _table_html(scores: Scores) -> str:
     keys = [k for k in scores.overall if k not in ("n_missing",)]
     head = "".join(f"<th>{html.escape(k)}</th>" for k in ["object", *keys])
     rows = []
@@ -136,11 +131,11 @@ def _table_html(scores: "Scores") -> str:
 
 
 def write_report(
-    scores: "Scores",
-    dataset: "BopDataset",
+    scores: Scores,
+    dataset: BopDataset,
     out_dir: str | Path,
     n_overlays: int = 4,
-    objects: dict[int, "ObjectData"] | None = None,
+    objects: dict[int, ObjectData] | None = None,
     title: str | None = None,
 ) -> Path:
     """Write ``out_dir/report.html`` and return its path.
@@ -153,8 +148,6 @@ def write_report(
         first available error); 0 disables overlays
     objects : ObjectData cache from the evaluation, reused for its renderers
     """
-    from pixie.eval import format_table, load_object_data
-
     out = Path(out_dir)
     out.mkdir(parents=True, exist_ok=True)
     objects = {} if objects is None else objects

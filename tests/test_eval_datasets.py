@@ -9,13 +9,12 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-from pixie.datasets import (
+from pixie.eval.datasets import (
     BopDataset,
     PoseEstimate,
     box_from_bop,
     gt_as_estimates,
     is_symmetric,
-    orthonormalize,
     read_results_csv,
     symmetry_transforms,
     write_results_csv,
@@ -145,17 +144,6 @@ def test_continuous_symmetry_discretisation():
     S2 = symmetry_transforms({**info, "symmetries_discrete": [flip]}, step)
     assert len(S2) == 2 * n
     np.testing.assert_allclose(S2[n], S[0] @ np.diag([1.0, -1.0, -1.0, 1.0]))
-
-
-def test_orthonormalize():
-    rng = np.random.default_rng(0)
-    T = np.eye(4)
-    T[:3, :3] += rng.normal(0, 1e-3, (3, 3))
-    T[:3, 3] = [1, 2, 3]
-    U = orthonormalize(T)
-    np.testing.assert_allclose(U[:3, :3] @ U[:3, :3].T, np.eye(3), atol=1e-12)
-    assert np.linalg.det(U[:3, :3]) == pytest.approx(1.0)
-    np.testing.assert_array_equal(U[:3, 3], [1, 2, 3])
 
 
 # ---------------------------------------------------------------------------- errors

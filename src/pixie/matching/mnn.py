@@ -1,0 +1,190 @@
+"""Mutual nearest neighbour matching of one query against many references, batched in torch.
+
+Optional spatial ``window`` (pixels), ratio test and minimum cosine similarity; one matrix product per chunk
+of references.
+"""
+
+from __future__ import annotations
+
+from collections.abc import Sequence
+
+import numpy as np
+import torch
+
+from pixie.features import Features, Matches
+from pixie.matching.base import RefBank
+
+_NEG = -4.0  # below any cosine similarity: marks pairs that are not candidates
+
+
+def _as_bank(refs: Sequence[Features] | RefBank, device: torch.device) -> RefBank:
+    if isinstance(refs, RefBank):
+        return refs
+    return RefBank(list(refs), device)
+
+
+def _pairs_to_matches(
+    q_idx: torch.Tensor, ref_idx: torch.Tensor, r_idx: torch.Tensor, sims: torch.Tensor, n_refs: int
+) -> list[Matches]:
+    """Split flat match lists (sorted by reference) into one :class:`Matches` per reference."""
+    q, b, r, s = (t.cpu().numpy() for t in (q_idx, ref_idx, r_idx, sims))
+    bounds = np.searchsorted(b, np.arange(n_refs + 1))
+    return [Matches(q[x:y], r[x:y], s[x:y]) for x, y in zip(bounds[:-1], bounds[1:])]
+
+
+def _accept(
+    best: torch.Tensor, second: torch.Tensor | None, ratio: float | None, min_sim: float | None
+) -> torch.Tensor:
+    """Candidate exists, minimum similarity, and ratio test on descriptor distances ``sqrt(2 - 2 s)``."""
+    ok = best > _NEG / 2
+    if min_sim is not None:
+        ok &= best >= min_sim
+    if ratio is not None and second is not None:
+        d1 = torch.sqrt(torch.clamp(2 - 2 * best, min=0))
+        d2 = torch.sqrt(torch.clamp(2 - 2 * second, min=0))
+        # a missing second candidate (similarity _NEG) has distance sqrt(10) > 2 and passes
+        ok &= d1 < ratio * d2
+    return ok
+
+
+def _mnn_chunk(
+    q_desc: torch.Tensor,
+    q_kp: torch.Tensor,
+    q_sqnorm: torch.Tensor,
+    desc: torch.Tensor,
+    kp: torch.Tensor,
+    sqnorm: torch.Tensor,
+    valid: torch.Tensor,
+    window: float | None,
+    ratio: float | None,
+    min_sim: float | None,
+) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor, torch.Tensor]:
+    """Mutual NN of one query against a chunk of ``b`` padded references.
+
+    Returns ``(ref_in_chunk, q_idx, r_idx, similarity)`` of the accepted pairs, sorted by reference.
+    """
+    b = desc.shape[0]
+    sim = torch.matmul(q_desc, desc.transpose(1, 2))  # (b, N, M)
+    if window is not None:
+        # squared distances in one fused kernel: |q|^2 + |r|^2 - 2 q.r
+        d2 = torch.baddbmm(
+            q_sqnorm[None, :, None] + sqnorm[:, None, :], q_kp[None].expand(b, -1, -1), kp.transpose(1, 2),
+            alpha=-2.0,
+        )
+        sim = torch.where(d2 < window * window, sim, _NEG)  # padding lies far outside every window
+    else:
+        sim = torch.where(valid[:, None, :], sim, _NEG)
+    second = None
+    if ratio is not None and sim.shape[2] >= 2:
+        top = sim.topk(2, dim=2)
+        best, fwd, second = top.values[..., 0], top.indices[..., 0], top.values[..., 1]
+    else:
+        best, fwd = sim.max(dim=2)
+    col_best = sim.amax(dim=1)  # (b, M): best similarity of each reference keypoint over the query
+    ok = (best >= torch.gather(col_best, 1, fwd)) & _accept(best, second, ratio, min_sim)
+    bb, qq = ok.nonzero(as_tuple=True)
+    return bb, qq, fwd[bb, qq], best[bb, qq]
+
+
+def _mnn_dense(
+    q_desc: torch.Tensor,
+    q_kp: torch.Tensor,
+    bank: RefBank,
+    window: float | None,
+    ratio: float | None,
+    min_sim: float | None,
+    chunk_elems: int,
+) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor, torch.Tensor]:
+    """Mutual NN against all references of ``bank``, in chunks of about ``chunk_elems`` similarities."""
+    pad = bank.padded()
+    b_all, m, _ = pad["desc"].shape
+    n = q_desc.shape[0]
+    per = max(1, chunk_elems // max(1, n * m))
+    q_sqnorm = (q_kp.double() ** 2).sum(-1).float()
+    out_q, out_b, out_r, out_s = [], [], [], []
+    for s0 in range(0, b_all, per):
+        sl = slice(s0, s0 + per)
+        bb, qq, rr, ss = _mnn_chunk(
+            q_desc, q_kp, q_sqnorm, pad["desc"][sl], pad["kp"][sl], pad["sqnorm"][sl], pad["valid"][sl],
+            window, ratio, min_sim,
+        )
+        out_b.append(bb + s0)
+        out_q.append(qq)
+        out_r.append(rr)
+        out_s.append(ss)
+    return torch.cat(out_q), torch.cat(out_b), torch.cat(out_r), torch.cat(out_s)
+
+
+def mutual_nn_match_many(
+    q: Features,
+    refs: Sequence[Features] | RefBank,
+    *,
+    window: float | None = None,
+    ratio: float | None = None,
+    min_similarity: float | None = None,
+    device: torch.device | str = "cpu",
+    chunk_elems: int | None = None,
+) -> list[Matches]:
+    """Mutual nearest neighbours (cosine similarity) between one query and many references.
+
+    Parameters
+    ----------
+    q, refs
+        The query features and the references (a list, or a prepared :class:`RefBank`). Descriptors are
+        expected L2-normalised (every pixie extractor does so).
+    window
+        Only pairs whose keypoints are closer than ``window`` pixels are candidates (query and references
+        share a pixel frame, e.g. equally sized object-centred crops). ``None``: no spatial limit.
+    ratio
+        Lowe's ratio on descriptor distances among the candidates of one query keypoint in one reference.
+    min_similarity
+        Minimum cosine similarity of a match.
+    device
+        Where to compute (a :class:`RefBank` keeps its own device).
+    chunk_elems
+        Similarities computed per chunk of references (default 2**21 on CPU, 2**26 on CUDA).
+
+    Returns
+    -------
+    list[Matches]
+        One per reference, sorted by query index; scores are cosine similarities.
+    """
+    bank = _as_bank(refs, torch.device(device))
+    dev = bank.device
+    if len(bank) == 0:
+        return []
+    if len(q) == 0 or bank.dim == 0:
+        return [Matches.empty() for _ in range(len(bank))]
+    if bank.dim != q.dim:
+        raise ValueError(f"query descriptors are {q.dim}-D but references are {bank.dim}-D")
+    if chunk_elems is None:
+        chunk_elems = 1 << (26 if dev.type == "cuda" else 21)
+    with torch.inference_mode():
+        q_desc = torch.from_numpy(q.descriptors).to(dev)
+        q_kp = torch.from_numpy(q.keypoints).to(dev)
+        win = None if window is None else float(window)
+        res = _mnn_dense(q_desc, q_kp, bank, win, ratio, min_similarity, int(chunk_elems))
+        return _pairs_to_matches(*res, n_refs=len(bank))
+
+
+class MutualNNAssigner:
+    """Mutual nearest neighbour assignment with optional window / ratio / min similarity."""
+
+    def __init__(
+        self,
+        device: torch.device,
+        *,
+        window: float | None = None,
+        ratio: float | None = None,
+        min_similarity: float | None = None,
+    ) -> None:
+        self.device = device
+        self.window = None if window is None else float(window)
+        self.ratio = None if ratio is None else float(ratio)
+        self.min_similarity = None if min_similarity is None else float(min_similarity)
+
+    def match_many(self, q: Features, refs: Sequence[Features] | RefBank) -> list[Matches]:
+        return mutual_nn_match_many(
+            q, refs, window=self.window, ratio=self.ratio, min_similarity=self.min_similarity,
+            device=self.device,
+        )

@@ -1,0 +1,57 @@
+"""The one config object: defaults, --set overrides, YAML files, and the errors for bad values."""
+
+from __future__ import annotations
+
+import pytest
+
+from pixie.config import PixieConfig
+from pixie.errors import ConfigError
+
+
+def test_overrides_parse_yaml_values_into_the_right_types():
+    cfg = PixieConfig().apply_overrides([
+        "refs.encodings=[shade3_edges, depth]", "refs.size=128", "match.window=null", "pose.reprojection_px=4",
+        "refine.recrop=false", "match.matcher=sift-nn",
+    ])
+    assert cfg.refs.encodings == ["shade3_edges", "depth"]
+    assert cfg.refs.size == 128 and isinstance(cfg.refs.size, int)
+    assert cfg.match.window is None
+    assert cfg.pose.reprojection_px == 4.0 and isinstance(cfg.pose.reprojection_px, float)
+    assert cfg.refine.recrop is False
+    assert cfg.match.matcher == "sift-nn"
+    assert PixieConfig().refs.size == 256  # overrides never touch the defaults
+
+
+def test_dict_and_yaml_round_trip(tmp_path):
+    cfg = PixieConfig().apply_overrides(["refs.n_fibonacci=40", "match.in_plane=query", "pose.top_k_views=12"])
+    assert PixieConfig.from_dict(cfg.to_dict()) == cfg
+    path = tmp_path / "c.yaml"
+    path.write_text("refs:\n  n_fibonacci: 40\nmatch:\n  in_plane: query\npose:\n  top_k_views: 12\n")
+    assert PixieConfig.from_yaml(path) == cfg
+    (tmp_path / "empty.yaml").write_text("")
+    assert PixieConfig.from_yaml(tmp_path / "empty.yaml") == PixieConfig()
+
+
+@pytest.mark.parametrize("override, message", [
+    ("refs", "section.key=value"),
+    ("size=3", "section.key"),
+    ("nosuch.size=3", "unknown config section 'nosuch'"),
+    ("refs.nosuch=3", "unknown key 'nosuch' in section 'refs'"),
+    ("refine.recrop=1", "expects true/false"),
+    ("refs.size=big", "expects a number"),
+    ("pose.reprojection_px=true", "expects a number"),
+])
+def test_bad_overrides_name_the_problem(override, message):
+    with pytest.raises(ConfigError, match=message):
+        PixieConfig().apply_overrides([override])
+
+
+def test_bad_yaml_files(tmp_path):
+    with pytest.raises(ConfigError, match="cannot read config"):
+        PixieConfig.from_yaml(tmp_path / "missing.yaml")
+    (tmp_path / "list.yaml").write_text("- 1\n- 2\n")
+    with pytest.raises(ConfigError, match="mapping of sections"):
+        PixieConfig.from_yaml(tmp_path / "list.yaml")
+    (tmp_path / "broken.yaml").write_text("refs: [1, 2\n")
+    with pytest.raises(ConfigError, match="cannot read config"):
+        PixieConfig.from_yaml(tmp_path / "broken.yaml")

@@ -1,0 +1,96 @@
+"""The estimator's stages: public, free of per-query state, and the ``match.in_plane=query`` path end to end."""
+
+from __future__ import annotations
+
+import numpy as np
+import pytest
+from test_pipeline import E2E_POSES, K_Q, check_result, e2e_config, generic_pose, pose_errors, render_photo
+
+from pixie.errors import ConfigError
+from pixie.estimator import PoseEstimator
+from pixie.pose import background_similarity
+from pixie.runner import make_matcher
+
+pytestmark = pytest.mark.usefixtures("one_torch_thread")
+
+
+def query_config(matcher_name: str):
+    """The demo's and the README's LM-O path: roll-0 reference features only, the query crop is rotated."""
+    cfg = e2e_config(matcher_name)
+    cfg.refs.feature_rolls = "first"
+    cfg.match.in_plane = "query"
+    return cfg
+
+
+@pytest.fixture(scope="module")
+def query_est(proc_mesh, matcher_name, build_refs):
+    cfg = query_config(matcher_name)
+    matcher = make_matcher(cfg)
+    return PoseEstimator(build_refs(proc_mesh, cfg.refs, matcher=matcher), cfg, matcher=matcher)
+
+
+# The first four generic poses of test_pipeline (rolled -10 to 30 degrees), fixed before looking at results.
+QUERY_POSES = E2E_POSES[:4]
+
+
+@pytest.fixture(scope="module")
+def query_results(query_est, proc_mesh):
+    out = []
+    for i, (az, el, rl) in enumerate(QUERY_POSES):
+        T = generic_pose(proc_mesh, az, el, rl)
+        img, bbox, _ = render_photo(proc_mesh, T, K_Q, seed=i)
+        res = query_est.estimate(img, K_Q, bbox=bbox)
+        check_result(res)
+        out.append((*pose_errors(res.T_cam_from_obj, T, proc_mesh.diameter), res, img, bbox))
+    print("in_plane=query errors:", [f"{r:.1f} deg / {100 * t:.1f}%" for r, t, *_ in out])
+    return out
+
+
+@pytest.mark.slow
+def test_in_plane_query_end_to_end(query_est, query_results, matcher_name):
+    """Rotated query crops against roll-0 references find the rolled poses (rolls -10..30 deg): a roll bug
+    (a crop turned the wrong way, or the roll index mirrored) puts them tens of degrees off.
+
+    Measured (ALIKED, 2 cores): 0.9-2.5 deg / 0.5-3.4 % for the four poses. As in test_pipeline, the bar is on
+    the set, with margin for single poses moving between versions: 3 of 4 within 5 deg / 5 %, median < 3.5 deg.
+    """
+    if matcher_name == "sift-nn":
+        pytest.skip("SIFT does not bridge photo texture and shaded renders")
+    assert query_est.pairs == [(v, 0) for v in range(query_est.refs.n_views)]  # roll-0 references only
+    errs = [(pose, f"{rot:.2f} deg", f"{100 * tr:.1f}%") for pose, (rot, tr, *_) in zip(QUERY_POSES, query_results)]
+    within = [rot < 5.0 and tr < 0.05 and not res.failed for rot, tr, res, *_ in query_results]
+    assert sum(within) >= 3, f"only {sum(within)} of 4 poses within 5 deg / 5 %: {errs}"
+    assert np.median([rot for rot, *_ in query_results]) < 3.5, errs
+
+
+@pytest.mark.slow
+def test_stages_reproduce_estimate_and_leave_no_state(query_est, query_results):
+    """Calling the public stages by hand gives estimate()'s pose, and estimate() changes nothing on the estimator."""
+    _, _, res, img, bbox = query_results[0]
+    before = {k: id(v) for k, v in vars(query_est).items()}
+    q = query_est.prepare(img, K_Q, bbox)
+    assert len(q.crops) == query_est.refs.n_rolls == len(q.features)
+    corr = query_est.match(q)
+    assert corr and all(len(p2) == len(p3) == len(s) for p2, p3, s in corr.values())
+    q.background = background_similarity([c[2] for c in corr.values()])
+    hyps = query_est.select_views(q, query_est.solve(q, corr))
+    out = query_est.result(query_est.render_refine(q, hyps))
+    np.testing.assert_array_equal(out.T_cam_from_obj, res.T_cam_from_obj)
+    assert out.score == res.score
+    again = query_est.estimate(img, K_Q, bbox=bbox)
+    np.testing.assert_array_equal(again.T_cam_from_obj, res.T_cam_from_obj)
+    assert {k: id(v) for k, v in vars(query_est).items()} == before
+
+
+def test_config_values_are_checked(proc_mesh, build_refs):
+    from pixie.config import PixieConfig, RefsConfig
+
+    cfg = PixieConfig()
+    cfg.refs = RefsConfig(n_fibonacci=2, rotations=2, size=64, encodings=["shade3_edges"])
+    cfg.match.matcher = "sift-nn"
+    refs = build_refs(proc_mesh, cfg.refs, matcher=make_matcher(cfg))
+    for key, value, message in (("match.in_plane", "photo", "in_plane"), ("pose.threshold_space", "px", "threshold")):
+        bad = PixieConfig.from_dict(cfg.to_dict())
+        bad.set(key, value)
+        with pytest.raises(ConfigError, match=message):
+            PoseEstimator(refs, bad)
