@@ -31,19 +31,21 @@ def load(path: Path) -> list[dict]:
     return [r for r in recs if r.get("hyps")]
 
 
-def choose(hyps: list[dict], w_m: float, w_e: float, w_r: float) -> dict:
+def choose(hyps: list[dict], w_m: float, w_e: float, w_r: float, w_c: float = 0.0) -> dict:
     best_m = max([h["match_score"] or 0.0 for h in hyps], default=0.0)
 
     def f(h):
         m = (h["match_score"] or 0.0) / best_m if best_m > 0 else 0.0
         e = h["edge"] if h["edge"] is not None else 0.0
         r = h["region"] if h["region"] is not None else 0.5
-        return w_m * m + w_e * e + w_r * (r - 0.5)
+        c = (h.get("terms") or {}).get("crease")
+        c = e if c is None else c
+        return w_m * m + w_e * e + w_r * (r - 0.5) + w_c * (c - e)
 
     return max(hyps, key=f)
 
 
-def evaluate(recs: list[dict], w: tuple[float, float, float]) -> dict:
+def evaluate(recs: list[dict], w: tuple) -> dict:
     ch = [choose(r["hyps"], *w) for r in recs]
     rot = np.array([c["rot_err"] for c in ch], float)
     return {"w_match": w[0], "w_edge": w[1], "w_region": w[2], "hits": int(sum(c["add_ok"] for c in ch)),
@@ -81,6 +83,10 @@ def main(argv=None) -> int:
     print("|---|---|---|---|---|---|")
     for d in rows[:12]:
         print(f"| {d['w_match']} | {d['w_edge']} | {d['w_region']} | {d['hits']} | {d['rot15']} | {d['median_rot']:.1f} |")
+    best = rows[0]
+    for wc in (0.25, 0.5, 1.0):
+        d = evaluate(recs, (best["w_match"], best["w_edge"], best["w_region"], wc))
+        print(f"best + crease term {wc} * (crease - edge): {d['hits']} hits, {d['rot15']} within 15°")
     for name, w in (("edge only", (0, 1, 0)), ("region only", (0, 0, 1)), ("edge + region", (0, 1, 1))):
         d = evaluate(recs, w)
         print(f"{name}: {d['hits']} hits, {d['rot15']} within 15°")
