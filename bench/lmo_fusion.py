@@ -71,8 +71,9 @@ def main(argv=None) -> int:
     n = len(recs)
     matcher_only = []
     for r in recs:
+        flagged = [h for h in r["hyps"] if h.get("matcher_best")]
         m = [h for h in r["hyps"] if h["source"] not in ("edges", "region")]
-        matcher_only.append(max(m, key=lambda h: h["match_score"] or 0.0) if m else r["hyps"][0])
+        matcher_only.append(flagged[0] if flagged else max(m, key=lambda h: h["match_score"] or 0.0) if m else r["hyps"][0])
     base = {"hits": int(sum(h["add_ok"] for h in matcher_only)),
             "rot15": int(sum((h["rot_err"] or 1e9) < 15 for h in matcher_only))}
     ceiling = int(sum(any(h["add_ok"] for h in r["hyps"]) for r in recs))

@@ -390,7 +390,7 @@ def run_pipeline(ds: BopDataset, targets: list[Target], cfg: PixieConfig, name: 
                           "edge": None if not np.isfinite(h.edge) else h.edge,
                           "region": None if not np.isfinite(h.region) else h.region,
                           "terms": {k: (None if not np.isfinite(v) else v) for k, v in h.terms.items()},
-                          "n_inliers": h.n_inliers,
+                          "n_inliers": h.n_inliers, "matcher_best": h.matcher_best,
                           "add_ok": bool(e["add_ok"]), "rot_err": e["rot_err"], "add": e["add"]}
                          for h, e in zip(res.hypotheses, hyp_err)]
             rec = {"hyp_add_ok": hyp_ok, "hyps": hyp_terms, "scene_id": t.scene_id, "im_id": t.im_id, "obj_id": t.obj_id, "visib": g.visib_fract,

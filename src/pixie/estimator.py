@@ -47,6 +47,7 @@ class Hypothesis:
     edge: float = float("nan")  # shape verification terms (pixie.shape), when run
     region: float = float("nan")
     terms: dict = field(default_factory=dict)  # every verification term (pixie.shape.ShapeCues.verify_terms)
+    matcher_best: bool = False  # the matcher's own choice (what the pipeline returns without shape cues)
 
 
 @dataclass
@@ -445,6 +446,8 @@ class PoseEstimator:
         t = time.perf_counter()
         best_match = max([h.score for h in hyps], default=0.0)
         pool = self._distinct(hyps, sc.verify_matcher)
+        if pool:
+            pool[0].matcher_best = True
         for c in cands:
             T = depth_from_box(c.T_cam_from_obj, K, self._box_points, box) if self.cfg.pose.depth_from_bbox else c.T_cam_from_obj
             pool.append(Hypothesis(T, 0.0, 0, 0, -1, -1, 0.0, box_iou(projected_box(T, K, self._box_points), box),
@@ -492,6 +495,7 @@ class PoseEstimator:
             return PoseResult(None, 0.0, 0, True, "no pose: too few 2D-3D matches survived PnP+RANSAC", timings=timings)
         best = hyps[0]
         distinct = self._distinct(hyps, self.cfg.refine.n_hypotheses)
+        distinct += [h for h in hyps if h.matcher_best and all(h is not d for d in distinct)][:1]  # kept for comparisons
         second = distinct[1].score if len(distinct) > 1 else 0.0
         confidence = float(best.score / (best.score + second)) if best.score > 0 else 0.0
         shape_pose = best.source in ("edges", "region") or np.isfinite(best.edge)
