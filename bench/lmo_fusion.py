@@ -8,7 +8,7 @@ Reads a run made with ``shape.enabled=true`` and a large ``refine.n_hypotheses``
 distinct hypotheses with their matcher score, edge / silhouette / crease / region agreement and pose errors,
 see bench/lmo_pipeline.py) and, for every weight triple on a fixed grid, picks per target the hypothesis with the
 highest ``w_match * match / best_match + w_edge * edge + w_region * (region - 0.5)``. Rule: the triple with the
-most ADD(-S)<0.1d hits wins (ties: the smaller total weight, then the grid order). Prints the grid's best rows,
+most ADD(-S)<0.1d hits wins (ties: more rotations within 15°, then the smaller total weight). Prints the grid's best rows,
 the matcher-only choice (today's default) and the ceiling (any hypothesis right).
 """
 
@@ -78,7 +78,7 @@ def main(argv=None) -> int:
             "rot15": int(sum((h["rot_err"] or 1e9) < 15 for h in matcher_only))}
     ceiling = int(sum(any(h["add_ok"] for h in r["hyps"]) for r in recs))
     rows = [evaluate(recs, w) for w in itertools.product(GRID_MATCH, GRID_EDGE, GRID_REGION) if any(w)]
-    rows.sort(key=lambda d: (-d["hits"], d["w_match"] + d["w_edge"] + d["w_region"]))
+    rows.sort(key=lambda d: (-d["hits"], -d["rot15"], d["w_match"] + d["w_edge"] + d["w_region"]))
     print(f"{n} targets; matcher only: {base['hits']} hits, {base['rot15']} within 15°; ceiling (any hypothesis): {ceiling}")
     print("| w_match | w_edge | w_region | ADD<0.1d hits | rot < 15° | median rot° |")
     print("|---|---|---|---|---|---|")
