@@ -8,7 +8,7 @@ Reads a run made with ``shape.enabled=true`` and a large ``refine.n_hypotheses``
 distinct hypotheses with their matcher score, edge / silhouette / crease / region agreement and pose errors,
 see bench/lmo_pipeline.py) and, for every weight triple on a fixed grid, picks per target the hypothesis with the
 highest ``w_match * match / best_match + w_edge * edge + w_region * (region - 0.5)``. Rule: the triple with the
-most ADD(-S)<0.1d hits wins (ties: the smaller total weight, then the grid order). Prints the grid's best rows,
+most ADD(-S)<0.1d hits wins (ties: more rotations within 15°, then the smaller total weight). Prints the grid's best rows,
 the matcher-only choice (today's default) and the ceiling (any hypothesis right).
 """
 
@@ -31,19 +31,21 @@ def load(path: Path) -> list[dict]:
     return [r for r in recs if r.get("hyps")]
 
 
-def choose(hyps: list[dict], w_m: float, w_e: float, w_r: float) -> dict:
+def choose(hyps: list[dict], w_m: float, w_e: float, w_r: float, w_c: float = 0.0) -> dict:
     best_m = max([h["match_score"] or 0.0 for h in hyps], default=0.0)
 
     def f(h):
         m = (h["match_score"] or 0.0) / best_m if best_m > 0 else 0.0
         e = h["edge"] if h["edge"] is not None else 0.0
         r = h["region"] if h["region"] is not None else 0.5
-        return w_m * m + w_e * e + w_r * (r - 0.5)
+        c = (h.get("terms") or {}).get("crease")
+        c = e if c is None else c
+        return w_m * m + w_e * e + w_r * (r - 0.5) + w_c * (c - e)
 
     return max(hyps, key=f)
 
 
-def evaluate(recs: list[dict], w: tuple[float, float, float]) -> dict:
+def evaluate(recs: list[dict], w: tuple) -> dict:
     ch = [choose(r["hyps"], *w) for r in recs]
     rot = np.array([c["rot_err"] for c in ch], float)
     return {"w_match": w[0], "w_edge": w[1], "w_region": w[2], "hits": int(sum(c["add_ok"] for c in ch)),
@@ -69,18 +71,23 @@ def main(argv=None) -> int:
     n = len(recs)
     matcher_only = []
     for r in recs:
+        flagged = [h for h in r["hyps"] if h.get("matcher_best")]
         m = [h for h in r["hyps"] if h["source"] not in ("edges", "region")]
-        matcher_only.append(max(m, key=lambda h: h["match_score"] or 0.0) if m else r["hyps"][0])
+        matcher_only.append(flagged[0] if flagged else max(m, key=lambda h: h["match_score"] or 0.0) if m else r["hyps"][0])
     base = {"hits": int(sum(h["add_ok"] for h in matcher_only)),
             "rot15": int(sum((h["rot_err"] or 1e9) < 15 for h in matcher_only))}
     ceiling = int(sum(any(h["add_ok"] for h in r["hyps"]) for r in recs))
     rows = [evaluate(recs, w) for w in itertools.product(GRID_MATCH, GRID_EDGE, GRID_REGION) if any(w)]
-    rows.sort(key=lambda d: (-d["hits"], d["w_match"] + d["w_edge"] + d["w_region"]))
+    rows.sort(key=lambda d: (-d["hits"], -d["rot15"], d["w_match"] + d["w_edge"] + d["w_region"]))
     print(f"{n} targets; matcher only: {base['hits']} hits, {base['rot15']} within 15°; ceiling (any hypothesis): {ceiling}")
     print("| w_match | w_edge | w_region | ADD<0.1d hits | rot < 15° | median rot° |")
     print("|---|---|---|---|---|---|")
     for d in rows[:12]:
         print(f"| {d['w_match']} | {d['w_edge']} | {d['w_region']} | {d['hits']} | {d['rot15']} | {d['median_rot']:.1f} |")
+    best = rows[0]
+    for wc in (0.25, 0.5, 1.0):
+        d = evaluate(recs, (best["w_match"], best["w_edge"], best["w_region"], wc))
+        print(f"best + crease term {wc} * (crease - edge): {d['hits']} hits, {d['rot15']} within 15°")
     for name, w in (("edge only", (0, 1, 0)), ("region only", (0, 0, 1)), ("edge + region", (0, 1, 1))):
         d = evaluate(recs, w)
         print(f"{name}: {d['hits']} hits, {d['rot15']} within 15°")

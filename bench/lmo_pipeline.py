@@ -326,7 +326,7 @@ def run_pipeline(ds: BopDataset, targets: list[Target], cfg: PixieConfig, name: 
                           "edge": None if not np.isfinite(h.edge) else h.edge,
                           "region": None if not np.isfinite(h.region) else h.region,
                           "terms": {k: (None if not np.isfinite(v) else v) for k, v in h.terms.items()},
-                          "n_inliers": h.n_inliers,
+                          "n_inliers": h.n_inliers, "matcher_best": h.matcher_best,
                           "add_ok": bool(e["add_ok"]), "rot_err": e["rot_err"], "add": e["add"]}
                          for h, e in zip(res.hypotheses, hyp_err)]
             rec = {"hyp_add_ok": hyp_ok, "hyps": hyp_terms, "scene_id": t.scene_id, "im_id": t.im_id, "obj_id": t.obj_id, "visib": g.visib_fract,
@@ -392,12 +392,13 @@ def format_table(rows: list[dict], oracle: bool = False) -> str:
                          f"{r['mean_inliers']:>9.1f}{100 * r['add_0.1d']:>8.1f}%{r['median_rot_err']:>8.1f}"
                          f"{r['median_trans_err']:>8.1f}{r['seconds_per_target']:>7.2f}")
         return "\n".join(lines)
-    head = (f"{'config':<28}{'n':>5}{'ADD<.1d':>9}{'any hyp':>8}{'AR(noVSD)':>10}{'rot°':>8}{'t mm':>8}{'s/tg':>7}  stages (extract/match/pnp/vs/rr)"
+    head = (f"{'config':<28}{'n':>5}{'ADD<.1d':>9}{'any hyp':>8}{'AR(noVSD)':>10}{'rot°':>8}{'t mm':>8}{'s/tg':>7}  stages (extract/match/pnp/vs/rr/edges/verify/region)"
             f"   refs s/obj, MB/obj")
     lines = [head]
     for r in rows:
         st = r["stage_seconds"]
-        stages = "/".join(f"{st.get(k, 0):.2f}" for k in ("extract", "match", "pnp", "view_selection", "render_refine"))
+        stages = "/".join(f"{st.get(k, 0):.2f}" for k in ("extract", "match", "pnp", "view_selection", "render_refine",
+                                                           "edge_retrieval", "verify", "region_refine"))
         ar = r.get("ar_no_vsd")
         b = r.get("refs_build_seconds_per_object")
         mb = r.get("refs_mb_per_object")

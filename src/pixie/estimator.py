@@ -77,6 +77,7 @@ class Hypothesis:
     edge: float = float("nan")  # shape verification terms (pixie.shape), when run
     region: float = float("nan")
     terms: dict = field(default_factory=dict)  # every verification term (pixie.shape.ShapeCues.verify_terms)
+    matcher_best: bool = False  # the matcher's own choice (what the pipeline returns without shape cues)
 
 
 @dataclass
@@ -461,6 +462,8 @@ class PoseEstimator:
         t = time.perf_counter()
         q.best_match = max([h.score for h in hyps], default=0.0)
         pool = self.distinct(hyps, sc.verify_matcher)
+        if pool:
+            pool[0].matcher_best = True
         for c in cands:
             T = depth_from_box(c.T_cam_from_obj, K, self.box_points, box) if self.cfg.pose.depth_from_bbox else c.T_cam_from_obj
             pool.append(Hypothesis(T, 0.0, 0, 0, -1, -1, 0.0, box_iou(projected_box(T, K, self.box_points), box),
@@ -511,6 +514,7 @@ class PoseEstimator:
         best = hyps[0]
         distinct = self.distinct(hyps, self.cfg.refine.n_hypotheses)
         second = distinct[1].score if len(distinct) > 1 else 0.0
+        distinct += [h for h in hyps if h.matcher_best and all(h is not d for d in distinct)][:1]  # kept for comparisons
         confidence = float(best.score / (best.score + second)) if best.score > 0 else 0.0
         shape_pose = best.source in ("edges", "region") or np.isfinite(best.edge)
         failed = (best.n_inliers < max(self.cfg.pose.min_inliers, 1) and not shape_pose) or best.score <= 0
