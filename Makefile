@@ -1,13 +1,14 @@
-# Two commands a fresh machine needs: `make demo` and `make test`.
+# Two commands a fresh machine needs: `make demo` and `make test` (`make wheel-check`: the built wheel, offline).
+# Without ../shared (or with PIXIE_SHARED=/nonexistent) the demo uses a generated part and LM-O tests skip.
 # Both install exactly the versions locked in constraints.txt (refresh it with `make lock`).
 PY ?= python3
 VENV := .venv
 BIN := $(VENV)/bin
 STAMP := $(VENV)/.installed
 PIP_VERSION := 26.3
-EXTRAS := test,synth
+EXTRAS := test,synth,ray
 
-.PHONY: demo test setup clean bench lock
+.PHONY: demo test setup clean bench lock wheel-check
 
 $(STAMP): pyproject.toml constraints.txt
 	$(PY) -m venv $(VENV)
@@ -23,6 +24,10 @@ demo: $(STAMP)
 
 test: $(STAMP)
 	$(BIN)/python -m pytest -q
+
+# The installed wheel, outside the repo, offline, with no shared data: `pixie demo` and `pixie estimate` must run.
+wheel-check:
+	PY=$(PY) PIP_VERSION=$(PIP_VERSION) bash tools/wheel_check.sh
 
 # Re-resolve every dependency from pyproject.toml (only torch pinned) in a throw-away venv and write
 # the full lock to constraints.txt. Review the diff, run `make clean test`, and commit it.

@@ -1,11 +1,15 @@
 """Reference-set build cost on the LM-O models: render + encode time and file size per object.
 
-For every model in ``<dataset>/models`` a full reference set (6 canonical + 115 Fibonacci views,
-8 in-plane rolls, the default config: size 512, default encodings) is built WITHOUT matcher
-features, then saved to a temporary folder to measure the file size. The bar is <= 30 s per object.
+For every model in ``<dataset>/models`` a full reference set is built and saved to a temporary folder to
+measure the file size. The bar is <= 30 s per object.
+
+With ``--preset NAME`` (e.g. ``default``) the set is built exactly as ``pixie refs build MESH --preset NAME``
+does: the preset's refs config and its matcher's features. Without it: the RefsConfig() defaults (or the
+flags below) and NO matcher features (render + encode cost only).
 
 Usage::
 
+    nice .venv/bin/python bench/refs_build.py --preset default [--threads 2] [--objects 1,5,8]
     nice .venv/bin/python bench/refs_build.py [--objects 1,5,8] [--size 512] [--workers 2]
                                               [--out out/bench/refs_build.json] [--profile]
 
@@ -29,7 +33,7 @@ from pathlib import Path
 REPO = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(REPO / "src"))
 
-from pixie.config import RefsConfig  # noqa: E402
+from pixie.config import PixieConfig, RefsConfig, preset_names  # noqa: E402
 from pixie.mesh import load_mesh  # noqa: E402
 from pixie.references import build_reference_set, save_reference_set  # noqa: E402
 
@@ -62,6 +66,10 @@ def _profile(mesh, cfg: RefsConfig, workers: int, top: int = 25) -> str:
 def main(argv: list[str] | None = None) -> int:
     ap = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
     ap.add_argument("--dataset", type=Path, default=DEFAULT_DATASET)
+    ap.add_argument("--preset", choices=preset_names(), help="build as `pixie refs build --preset NAME` (with features)")
+    ap.add_argument("--threads", type=int, default=None, help="torch/OpenCV threads (default: torch's)")
+    ap.add_argument("--keep", type=Path, help="with --preset: keep the sets in this folder under the names `pixie run` "
+                    "caches them by (its --refs-dir), instead of deleting them")
     ap.add_argument("--objects", default=None, help="comma-separated object ids (default: every model)")
     ap.add_argument("--size", type=int, default=RefsConfig().size, help="reference image side, px")
     ap.add_argument("--workers", type=int, default=1, help="render/encode processes")
@@ -77,14 +85,27 @@ def main(argv: list[str] | None = None) -> int:
     if not models.is_dir():
         print(f"models folder not found: {models}", file=sys.stderr)
         return 2
-    cfg = RefsConfig(size=args.size, n_fibonacci=args.n_fibonacci, rotations=args.rotations,
-                     feature_rolls=args.feature_rolls)
+    matcher = None
+    if args.threads:
+        from pixie.cluster import set_threads
+
+        set_threads(args.threads)
+    if args.preset:
+        from pixie.runner import make_matcher
+
+        full = PixieConfig.from_preset(args.preset)
+        cfg = full.refs
+        matcher = make_matcher(full)
+    else:
+        cfg = RefsConfig(size=args.size, n_fibonacci=args.n_fibonacci, rotations=args.rotations,
+                         feature_rolls=args.feature_rolls)
     n_views = cfg.n_fibonacci + (6 if cfg.canonical else 0)
     rows = []
     header = f"{'obj':>4} {'faces':>7} {'views x rolls':>13} {'size':>5} {'workers':>7} {'build s':>8} " \
              f"{'ms/image':>8} {'save s':>7} {'file MB':>8} {'<=30s':>5}"
     print(f"reference sets: {n_views} views x {cfg.rotations} rolls, size {cfg.size}, encodings {cfg.encodings}, "
-          f"no matcher features; feature_rolls {cfg.feature_rolls}; workers {args.workers}; {os.cpu_count()} CPUs; "
+          f"features: {matcher.name if matcher else 'none'} (preset {args.preset}); feature_rolls {cfg.feature_rolls}; "
+          f"workers {args.workers}; {os.cpu_count()} CPUs; threads {args.threads or 'default'}; "
           f"OPENBLAS_NUM_THREADS={os.environ.get('OPENBLAS_NUM_THREADS', 'unset')}")
     print(header)
     print("-" * len(header))
@@ -96,14 +117,20 @@ def main(argv: list[str] | None = None) -> int:
                 profile_text = _profile(mesh, cfg, workers=1)
             t0 = time.perf_counter()
             c0 = time.process_time()
-            refs = build_reference_set(mesh, cfg, workers=args.workers)
+            refs = build_reference_set(mesh, cfg, matcher=matcher, workers=args.workers)
             build_s = time.perf_counter() - t0
             cpu_main = time.process_time() - c0
             t1 = time.perf_counter()
-            out = save_reference_set(refs, Path(tmp) / f"obj_{obj_id:06d}.npz")
+            if args.keep and args.preset:
+                from pixie.runner import reference_cache_path
+
+                out = save_reference_set(refs, reference_cache_path(mesh, full, args.keep))
+            else:
+                out = save_reference_set(refs, Path(tmp) / f"obj_{obj_id:06d}.npz")
             save_s = time.perf_counter() - t1
             size_mb = out.stat().st_size / 1e6
-            out.unlink()
+            if not args.keep:
+                out.unlink()
             n_img = refs.n_views * refs.n_rolls
             row = {
                 "obj_id": obj_id, "faces": int(len(mesh.faces)), "views": refs.n_views, "rolls": refs.n_rolls,
@@ -125,7 +152,8 @@ def main(argv: list[str] | None = None) -> int:
     args.out.parent.mkdir(parents=True, exist_ok=True)
     report = {
         "config": {"n_views": n_views, "rotations": cfg.rotations, "size": cfg.size, "encodings": cfg.encodings,
-                   "feature_rolls": cfg.feature_rolls, "workers": args.workers, "matcher": None,
+                   "feature_rolls": cfg.feature_rolls, "workers": args.workers,
+                   "matcher": matcher.name if matcher else None, "preset": args.preset, "threads": args.threads,
                    "OPENBLAS_NUM_THREADS": os.environ.get("OPENBLAS_NUM_THREADS")},
         "machine": {"cpus": os.cpu_count(), "python": platform.python_version(),
                     "loadavg_at_end": os.getloadavg() if hasattr(os, "getloadavg") else None},

@@ -19,8 +19,11 @@ from pixie.camera import make_T
 from pixie.mesh import from_arrays
 from pixie.render import Renderer, composite
 
-LMO_DIR = Path(__file__).resolve().parents[1].parent / "shared/data/lmo_dev/lmo"
-WEIGHTS_DIR = Path(__file__).resolve().parents[1].parent / "shared/weights"
+from pixie.weights import shared_root
+
+_SHARED = shared_root() or Path("/nonexistent-shared")  # $PIXIE_SHARED, else ../shared beside the repository
+LMO_DIR = _SHARED / "data/lmo_dev/lmo"
+WEIGHTS_DIR = _SHARED / "weights"
 
 needs_lmo = pytest.mark.skipif(
     not (LMO_DIR / "models").is_dir(), reason=f"LM-O development data not found at {LMO_DIR}"
@@ -252,7 +255,8 @@ def build_synthetic_bop(root: Path) -> dict:
         ]
         cam[str(im_id)] = {"cam_K": SYN_K.ravel().tolist(), "depth_scale": 0.1}
         gt_info[str(im_id)] = [
-            {"visib_fract": float((owner == i).sum() / max(r.mask.sum(), 1)), "px_count_all": int(r.mask.sum())}
+            {"visib_fract": float((owner == i).sum() / max(r.mask.sum(), 1)), "px_count_all": int(r.mask.sum()),
+             "bbox_visib": _bop_box(owner == i), "bbox_obj": _bop_box(r.mask)}
             for i, r in enumerate(renders)
         ]
         counts: dict[int, int] = {}
@@ -267,6 +271,14 @@ def build_synthetic_bop(root: Path) -> dict:
     return {"meshes": meshes, "scenes": scenes}
 
 
+
+
+def _bop_box(mask: np.ndarray) -> list[int]:
+    """A mask's box as BOP stores it: [x, y, last - first, last - first]; [-1, -1, -1, -1] when empty."""
+    ys, xs = np.nonzero(mask)
+    if len(xs) == 0:
+        return [-1, -1, -1, -1]
+    return [int(xs.min()), int(ys.min()), int(xs.max() - xs.min()), int(ys.max() - ys.min())]
 
 
 @pytest.fixture(scope="session")

@@ -19,7 +19,7 @@ SRC = Path(__file__).resolve().parents[1] / "src" / "pixie"
 
 # Lowest first. A module may import modules of its own or a lower layer. Packages are listed by prefix.
 LAYERS: list[tuple[str, ...]] = [
-    ("pixie._version", "pixie.errors"),
+    ("pixie._version", "pixie.errors", "pixie.outputs"),
     ("pixie.config", "pixie.weights", "pixie.geometry"),
     ("pixie.camera", "pixie.mesh"),
     ("pixie.render", "pixie.views", "pixie.encode", "pixie.features", "pixie.query"),
@@ -27,14 +27,16 @@ LAYERS: list[tuple[str, ...]] = [
     ("pixie.matching",),
     ("pixie.pose",),
     # cues beside refinement: edge/contour templates, region refinement (pixie.contours, pixie.edges, pixie.region)
-    ("pixie.refine", "pixie.contours", "pixie.edges", "pixie.region", "pixie.cues"),
-    ("pixie.estimator",),
+    ("pixie.refine", "pixie.contours", "pixie.edges", "pixie.region", "pixie.cues", "pixie.shape"),
+    ("pixie.results", "pixie.estimator"),
     ("pixie.viz",),
     ("pixie.eval",),
     ("pixie.synth",),
     ("pixie.train",),
-    ("pixie.runner",),
-    ("pixie.cli", "pixie.demo"),
+    ("pixie.cluster",),
+    ("pixie.runner", "pixie.batch"),
+    ("pixie.api", "pixie.demo"),
+    ("pixie.cli",),
 ]
 
 # Third-party packages that may be imported inside functions: optional extras or heavy imports that only
@@ -51,6 +53,7 @@ LAZY_THIRD_PARTY = {
     "torch",  # pixie.weights reads checkpoints with torch, but resolving a weight path must not import it
     "multiprocessing",  # reference rendering with workers > 1 only
     "concurrent",
+    "ray",  # the `ray` extra: --ray runs only
 }
 
 MAX_LINES = 500
@@ -193,5 +196,5 @@ def test_public_api():
     import pixie
 
     for name in ("load_mesh", "build_reference_set", "load_reference_set", "PoseEstimator", "PixieConfig",
-                 "load_image", "PixieError"):
+                 "load_image", "PixieError", "estimate_pose"):
         assert name in pixie.__all__ and hasattr(pixie, name), name

@@ -1,13 +1,17 @@
-"""The ``pixie`` command line: every sub-command on small real inputs, and one-line errors (exit 2)."""
+"""The ``pixie`` command line: every sub-command on small real inputs, one-line errors (exit 2), version and help,
+refusing no box, ``pixie weights``, outputs kept as named."""
 
 from __future__ import annotations
 
 import json
+import os
+import stat
 
 import cv2
 import numpy as np
 import pytest
 
+import pixie
 from pixie.cli import main
 from pixie.render import Renderer
 
@@ -53,7 +57,8 @@ def test_estimate_writes_a_result_and_an_overlay(built, synthetic_bop):
 
 
 @pytest.mark.parametrize("args, message", [
-    (["estimate", "--refs", "missing.npz", "--image", "x.png", "--K", "1,1,0,0"], "reference set not found"),
+    (["estimate", "--refs", "missing.npz", "--image", "x.png", "--K", "1,1,0,0", "--bbox", "0,0,5,5"],
+     "reference set not found"),
     (["refs", "build", "missing.ply", "-o", "r.npz"], "missing.ply"),
     (["refs", "build", "m.ply", "-o", "r.npz", "--set", "refs.nosuch=1"], "unknown key 'nosuch'"),
 ])
@@ -75,3 +80,80 @@ def test_run_and_eval_commands(synthetic_bop, tmp_path, capsys):
                  "--metrics", "mssd,mspd", "--no-report"]) == 0
     assert json.loads((tmp_path / "ev" / "scores.json").read_text())["overall"]["AR_MSSD"] == scores["overall"]["AR_MSSD"]
     assert "AR" in capsys.readouterr().out
+
+
+def test_version_and_help(capsys):
+    with pytest.raises(SystemExit) as info:
+        main(["--version"])
+    assert info.value.code == 0 and capsys.readouterr().out.strip() == f"pixie {pixie.__version__}"
+    for cmd in (["refs", "build"], ["refs", "show"], ["estimate"], ["run"], ["weights"], ["eval"], ["demo"]):
+        with pytest.raises(SystemExit) as info:
+            main([*cmd, "-h"])
+        assert info.value.code == 0, cmd
+    out = capsys.readouterr().out
+    assert "--preset" in out and "--device" in out and "--ray" in out
+
+
+def test_estimate_without_box_refuses_saying_what_to_pass(tmp_path, capsys):
+    rc = main(["estimate", "--refs", str(tmp_path / "r.npz"), "--image", "x.png", "--K", "600,600,320,240"])
+    err = capsys.readouterr().err
+    assert rc == 2 and "no object box" in err and "--bbox x,y,w,h" in err and "--mask" in err
+    assert "Traceback" not in err
+
+
+def test_weights_lists_the_shipped_extractor(capsys):
+    assert main(["weights", "--json"]) == 0
+    data = json.loads(capsys.readouterr().out)
+    by_name = {w["name"]: w for w in data["weights"]}
+    assert by_name["aliked-n16"]["path"] and len(by_name["aliked-n16"]["sha256"]) == 64
+    assert data["backends"]["aliked-nn"]["ready"] and data["backends"]["aliked-nn"]["weights"] == ["aliked-n16"]
+
+
+def test_refs_build_keeps_the_output_name(tmp_path, capsys):
+    import trimesh
+
+    from pixie.demo import generated_part
+
+    m = generated_part()
+    stl = tmp_path / "bracket.stl"
+    trimesh.Trimesh(m.vertices / 1000.0, m.faces, process=False).export(stl)  # a metre file
+    small = ["--views", "6", "--rotations", "1", "--size", "32", "--encodings", "depth", "--matcher", "none"]
+    assert main(["refs", "build", str(stl), "-o", str(tmp_path / "bracket.refs"), *small]) == 0
+    out = capsys.readouterr().out
+    assert "read in metres (auto-detected from its size), diameter 164.9 mm" in out
+    assert (tmp_path / "bracket.refs").is_file() and not (tmp_path / "bracket.refs.npz").exists()
+    before = os.stat("/dev/null")
+    assert main(["refs", "build", str(stl), "-o", "/dev/null", *small]) == 0
+    assert stat.S_ISCHR(os.stat("/dev/null").st_mode) and os.stat("/dev/null").st_ino == before.st_ino
+
+
+def test_estimate_from_a_mesh_builds_references_once(tmp_path, monkeypatch, capsys):
+    """`pixie estimate --mesh` builds the reference set into the user cache once; the JSON names its inputs."""
+    import trimesh
+
+    from pixie.demo import generated_part, generated_photo
+    from pixie.query import bbox_from_mask
+    from pixie.viz import save_png
+
+    monkeypatch.setenv("XDG_CACHE_HOME", str(tmp_path / "cache"))
+    m = generated_part()
+    trimesh.Trimesh(m.vertices, m.faces, process=False).export(tmp_path / "part.stl")
+    img, K, T = generated_photo(m)
+    save_png(tmp_path / "photo.png", img)
+    x, y, w, h = bbox_from_mask(Renderer(m).render(T, K, *img.shape[:2]).mask)
+    args = ["estimate", "--mesh", str(tmp_path / "part.stl"), "--image", str(tmp_path / "photo.png"),
+            "--K", f"{K[0, 0]},{K[1, 1]},{K[0, 2]},{K[1, 2]}", "--bbox", f"{x:.0f},{y:.0f},{w:.0f},{h:.0f}",
+            "-o", str(tmp_path / "r.json"), "--overlay", str(tmp_path / "o.png"), *TINY]
+    main(args)
+    assert "building references" in capsys.readouterr().out
+    sets = list((tmp_path / "cache" / "pixie" / "refs").glob("*.npz"))
+    assert len(sets) == 1
+    main(args)
+    assert "building references" not in capsys.readouterr().out
+    res = json.loads((tmp_path / "r.json").read_text())
+    assert res["units"] == "mm" and res["box"]["source"] == "bbox" and res["box"]["xywh"] == [x, y, w, h]
+    import hashlib
+
+    assert res["image"]["sha256"] == hashlib.sha256((tmp_path / "photo.png").read_bytes()).hexdigest()
+    assert res["mesh_sha256"] == hashlib.sha256((tmp_path / "part.stl").read_bytes()).hexdigest()
+    assert cv2.imread(str(tmp_path / "o.png")).shape == img.shape

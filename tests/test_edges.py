@@ -110,8 +110,11 @@ def test_templates_are_stored_with_the_reference_set(proc_mesh, tmp_path):
     refs = build_reference_set(proc_mesh, RefsConfig(n_fibonacci=2, rotations=1, size=64, encodings=["depth"]))
     save_reference_set(refs, tmp_path / "plain.npz")
     assert load_reference_set(tmp_path / "plain.npz").templates is None
-    refs.templates = build_templates(proc_mesh, n_views=10, size=64, n_points=32)
-    back = load_reference_set(save_reference_set(refs, tmp_path / "with.npz")).templates
-    for k, v in refs.templates.to_arrays().items():
+    from pixie.contours import ContourTemplates
+
+    tpl = build_templates(proc_mesh, n_views=10, size=64, n_points=32)
+    refs.templates = tpl.to_arrays()
+    back = ContourTemplates.from_arrays(load_reference_set(save_reference_set(refs, tmp_path / "with.npz")).templates)
+    for k, v in tpl.to_arrays().items():
         np.testing.assert_array_equal(np.asarray(getattr(back, k)), v)
     assert back.size == 64 and back.n_views == 10 and back.n_points == 32

@@ -23,8 +23,9 @@ from pixie.matching import (
     mutual_nn_match_many,
     remap_lightglue_state,
 )
+from pixie.weights import shared_root
 
-SHARED = Path(__file__).resolve().parents[1].parent / "shared"
+SHARED = shared_root() or Path("/nonexistent-shared")  # $PIXIE_SHARED or ../shared
 PHOTO = SHARED / "data" / "lmo_dev" / "lmo" / "test" / "000002" / "rgb" / "000003.png"
 
 # A mild perspective warp of a 256 px crop (largest displacement about 20 px).

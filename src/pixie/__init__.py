@@ -3,10 +3,13 @@
 The public API is these few names (everything else is importable from its module, see ARCHITECTURE.md)::
 
     import pixie
-    from pixie.runner import make_matcher
 
-    mesh = pixie.load_mesh("part.ply", units="mm")
-    cfg = pixie.PixieConfig()
+    result = pixie.estimate_pose("part.stl", "photo.png", K="600,600,320,240", bbox=(x, y, w, h))   # one call
+
+    from pixie.runner import make_matcher                    # or step by step:
+
+    mesh = pixie.load_mesh("part.ply")                       # units auto-detected (mm unless under 2 units across)
+    cfg = pixie.PixieConfig.from_preset("default")
     refs = pixie.build_reference_set(mesh, cfg.refs, matcher=make_matcher(cfg))  # or pixie.load_reference_set(path, mesh)
     est = pixie.PoseEstimator(refs, cfg)
     result = est.estimate(pixie.load_image("photo.png"), K, bbox=(x, y, w, h))
@@ -22,6 +25,7 @@ Conventions (everywhere): OpenCV camera (x right, y down, z forward), millimetre
 """
 
 from pixie._version import __version__
+from pixie.api import estimate_pose
 from pixie.config import PixieConfig
 from pixie.errors import PixieError
 from pixie.estimator import PoseEstimator
@@ -31,6 +35,7 @@ from pixie.references import build_reference_set, load_reference_set
 
 __all__ = [
     "__version__",
+    "estimate_pose",
     "PixieConfig",
     "PixieError",
     "PoseEstimator",

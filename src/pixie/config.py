@@ -3,11 +3,18 @@
 Sections follow the pipeline: ``refs`` (offline reference views), ``query`` (cropping),
 ``match`` (cross-modality matcher), ``pose`` (lifting + PnP/RANSAC) and ``refine`` (view selection).
 Override from the command line with ``--set section.key=value`` (values parsed as YAML).
+
+Presets (``src/pixie/configs/<name>.yaml``: ``fast``, ``default``, ``paper``) are YAML files of the same
+sections layered on top of the dataclass defaults; :meth:`PixieConfig.from_preset` loads one and every
+``pixie`` command starts from ``--preset default``. The dataclass defaults themselves (``PixieConfig()``) are
+the paper's settings plus pixie's extras and are not a preset.
 """
 
 from __future__ import annotations
 
 import dataclasses
+import hashlib
+import json
 from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any
@@ -94,6 +101,37 @@ class RefineConfig:
     render_hypotheses: int = 6
 
 
+PRESETS_DIR = Path(__file__).resolve().parent / "configs"
+DEFAULT_PRESET = "default"
+
+
+def preset_names() -> list[str]:
+    """Names of the presets shipped in ``pixie/configs`` (sorted)."""
+    return sorted(p.stem for p in PRESETS_DIR.glob("*.yaml"))
+
+
+def preset_about(name: str) -> str:
+    """The one-line description (``about:``) of a shipped preset."""
+    return str(_read_yaml(_preset_path(name)).get("about", ""))
+
+
+def _preset_path(name: str) -> Path:
+    path = PRESETS_DIR / f"{name}.yaml"
+    if not path.is_file():
+        raise ConfigError(f"unknown preset {name!r}; presets: {', '.join(preset_names())}")
+    return path
+
+
+def _read_yaml(path: str | Path) -> dict[str, Any]:
+    try:
+        data = yaml.safe_load(Path(path).read_text())
+    except (OSError, yaml.YAMLError) as exc:
+        raise ConfigError(f"cannot read config {path}: {exc}") from exc
+    if data is not None and not isinstance(data, dict):
+        raise ConfigError(f"config {path} must be a mapping of sections")
+    return data or {}
+
+
 @dataclass
 class ShapeConfig:
     """Shape cues beside the matcher (pixie.shape): contour templates, edge + region verification, region refinement.
@@ -132,27 +170,48 @@ class PixieConfig:
     pose: PoseConfig = field(default_factory=PoseConfig)
     refine: RefineConfig = field(default_factory=RefineConfig)
     shape: ShapeConfig = field(default_factory=ShapeConfig)
+    preset: str | None = field(default=None, compare=False)  # name of the preset it started from (None: dataclass defaults)
 
     def to_dict(self) -> dict[str, Any]:
-        return dataclasses.asdict(self)
+        """The config sections as plain data (the preset name is not part of it: only values count)."""
+        d = dataclasses.asdict(self)
+        d.pop("preset", None)
+        return d
+
+    def digest(self) -> str:
+        """sha256 (hex, 16 characters) of :meth:`to_dict`: equal digests mean equal settings."""
+
+        return hashlib.sha256(json.dumps(self.to_dict(), sort_keys=True).encode()).hexdigest()[:16]
+
+    def update(self, data: dict[str, Any] | None) -> "PixieConfig":
+        """Set every ``{section: {key: value}}`` of ``data`` (a top-level ``about`` string is ignored)."""
+        for section, values in (data or {}).items():
+            if section == "about":
+                continue
+            if not isinstance(values, dict):
+                raise ConfigError(f"config section {section!r} must be a mapping of keys, got {values!r}")
+            for key, value in values.items():
+                self.set(f"{section}.{key}", value)
+        return self
 
     @classmethod
     def from_dict(cls, data: dict[str, Any] | None) -> "PixieConfig":
-        cfg = cls()
-        for section, values in (data or {}).items():
-            for key, value in (values or {}).items():
-                cfg.set(f"{section}.{key}", value)
-        return cfg
+        return cls().update(data)
 
     @classmethod
     def from_yaml(cls, path: str | Path) -> "PixieConfig":
-        try:
-            data = yaml.safe_load(Path(path).read_text())
-        except (OSError, yaml.YAMLError) as exc:
-            raise ConfigError(f"cannot read config {path}: {exc}") from exc
-        if data is not None and not isinstance(data, dict):
-            raise ConfigError(f"config {path} must be a mapping of sections")
-        return cls.from_dict(data)
+        return cls.from_dict(_read_yaml(path))
+
+    @classmethod
+    def from_preset(cls, name: str = DEFAULT_PRESET) -> "PixieConfig":
+        """The dataclass defaults with the preset ``name`` (``fast``, ``default``, ``paper``) applied."""
+        cfg = cls.from_dict(_read_yaml(_preset_path(name)))
+        cfg.preset = name
+        return cfg
+
+    def update_from_yaml(self, path: str | Path) -> "PixieConfig":
+        """Apply a YAML file of sections on top of this config (e.g. a user file over a preset)."""
+        return self.update(_read_yaml(path))
 
     def set(self, dotted: str, value: Any) -> None:
         """Set ``section.key`` to ``value`` (strings are parsed as YAML scalars/lists)."""

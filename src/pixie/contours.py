@@ -17,6 +17,7 @@ full silhouette (per roll) fixes scale and position against a query box (:mod:`p
 
 from __future__ import annotations
 
+import dataclasses
 import time
 from dataclasses import dataclass
 
@@ -109,15 +110,11 @@ class ContourTemplates:
 
     def to_arrays(self) -> dict[str, np.ndarray]:
         """Every field as an array (for .npz storage)."""
-        import dataclasses
-
         return {f.name: np.asarray(getattr(self, f.name)) for f in dataclasses.fields(self)}
 
     @classmethod
     def from_arrays(cls, arrays: dict) -> "ContourTemplates":
         """Inverse of :meth:`to_arrays`."""
-        import dataclasses
-
         kw = {}
         for f in dataclasses.fields(cls):
             v = np.asarray(arrays[f.name])

@@ -1,10 +1,12 @@
 """``make demo``: build references for one object and estimate its pose in a photo, end to end.
 
-With the LM-O dev data beside the repository (``../shared/data/lmo_dev``) the photo is a real LM-O
+With the LM-O dev data beside the repository (``../shared/data/lmo_dev``, or ``$PIXIE_SHARED/data/lmo_dev``) the photo is a real LM-O
 image (by default image 17, the watering can: one the current pipeline gets right; on most LM-O
 targets it does not yet, see bench/RESULTS.md, and ``--im-id`` shows others); otherwise a photo of a generated part is rendered (random colours, background clutter), so a
-fresh clone always has something to run. Prints the pose, its error against ground truth, and writes
-an overlay and a reference contact sheet under ``out/demo/``.
+fresh clone (or an installed wheel, offline) always has something to run. Prints the pose, its error against
+ground truth, and writes an overlay and a reference contact sheet under ``out/demo/`` (``./pixie-demo`` outside a
+source checkout); the generated part's inputs (``part.stl``, ``photo.png``, ``K.txt``, ``bbox.txt``) go there too,
+ready for ``pixie estimate``.
 """
 
 from __future__ import annotations
@@ -28,12 +30,22 @@ from pixie.query import bbox_from_mask
 from pixie.render import Renderer
 from pixie.runner import cached_reference_set
 from pixie.viz import contact_sheet, overlay_pose, save_png
+from pixie.weights import repo_root, shared_root
 
 REPO = Path(__file__).resolve().parents[2]
-LMO = REPO.parent / "shared" / "data" / "lmo_dev" / "lmo"
-# The demo keeps the reference build short on a laptop CPU: the configuration measured in
-# bench/RESULTS.md (256 px, shading + edges, features of roll 0 only, the query rotated instead).
-DEMO_OVERRIDES = ["refs.encodings=[shade3_edges]", "refs.feature_rolls=first", "match.in_plane=query"]
+
+
+def lmo_dir() -> Path | None:
+    """LM-O dev data in the shared folder (``$PIXIE_SHARED`` or ``<repo>/../shared``), if present."""
+    root = shared_root()
+    d = None if root is None else root / "data" / "lmo_dev" / "lmo"
+    return d if d is not None and d.is_dir() else None
+
+
+def default_out() -> Path:
+    """``out/demo`` in a source checkout, else ``./pixie-demo``."""
+    root = repo_root()
+    return root / "out" / "demo" if root is not None else Path.cwd() / "pixie-demo"
 
 
 def generated_part() -> Mesh:
@@ -70,16 +82,21 @@ def generated_photo(mesh: Mesh, seed: int = 0) -> tuple[np.ndarray, np.ndarray, 
 
 def main(argv: list[str] | None = None) -> int:
     ap = argparse.ArgumentParser(description=__doc__)
-    ap.add_argument("--out", default=str(REPO / "out" / "demo"))
+    ap.add_argument("--out", default=None, help="output folder (default out/demo in a checkout, else ./pixie-demo)")
     ap.add_argument("--synthetic", action="store_true", help="use a generated part even if LM-O is present")
     ap.add_argument("--im-id", type=int, default=17)
     ap.add_argument("--obj-id", type=int, default=5)
+    ap.add_argument("--preset", default="default", help="configuration preset (fast, default, paper)")
+    ap.add_argument("--device", choices=["auto", "cpu", "cuda"], help="where the matcher runs (default: the preset's, auto)")
     args = ap.parse_args(argv)
-    out = Path(args.out)
-    cfg = PixieConfig().apply_overrides(DEMO_OVERRIDES)
+    out = Path(args.out) if args.out else default_out()
+    cfg = PixieConfig.from_preset(args.preset)
+    if args.device:
+        cfg.match.device = args.device
+    lmo = lmo_dir()
 
-    if LMO.is_dir() and not args.synthetic:
-        ds = BopDataset(LMO)
+    if lmo is not None and not args.synthetic:
+        ds = BopDataset(lmo)
         mesh = load_mesh(ds.model_path(args.obj_id))
         image, K = ds.load_rgb(2, args.im_id), ds.camera(2, args.im_id).K
         inst = next(g for g in ds.instances(2, args.im_id) if g.obj_id == args.obj_id)
@@ -89,7 +106,8 @@ def main(argv: list[str] | None = None) -> int:
         mesh = generated_part()
         image, K, T_gt = generated_photo(mesh)
         bbox = bbox_from_mask(Renderer(mesh).render(T_gt, K, *image.shape[:2]).mask)
-        source = "generated part, rendered photo (LM-O data not found beside the repository)"
+        source = ("generated part, rendered photo" + ("" if args.synthetic else " (LM-O data not found beside the repository)"))
+        _write_inputs(out, mesh, image, K, bbox)
     print(f"pixie demo: {source}")
     print(f"mesh {mesh.name}: {len(mesh.faces)} triangles, diameter {mesh.diameter:.1f} mm")
 
@@ -116,6 +134,20 @@ def main(argv: list[str] | None = None) -> int:
     print(f"overlay (red: estimate, green: ground truth) -> {path}")
     print(f"reference contact sheet -> {out / 'references.png'}")
     return 0
+
+
+def _write_inputs(out: Path, mesh: Mesh, image: np.ndarray, K: np.ndarray, bbox: np.ndarray) -> None:
+    """The generated part's inputs as files, for trying ``pixie estimate`` on them."""
+    import trimesh
+
+    out.mkdir(parents=True, exist_ok=True)
+    trimesh.Trimesh(mesh.vertices, mesh.faces, process=False).export(out / "part.stl")
+    save_png(out / "photo.png", image)
+    (out / "K.txt").write_text(f"{K[0, 0]:.6g},{K[1, 1]:.6g},{K[0, 2]:.6g},{K[1, 2]:.6g}\n")
+    (out / "bbox.txt").write_text(",".join(f"{v:.0f}" for v in bbox) + "\n")
+    print(f"inputs -> {out}/part.stl, photo.png, K.txt, bbox.txt; try:\n"
+          f"  pixie estimate --mesh {out}/part.stl --image {out}/photo.png --K $(cat {out}/K.txt) "
+          f"--bbox $(cat {out}/bbox.txt) -o {out}/result.json --overlay {out}/estimate.png")
 
 
 def _progress(done: int, total: int) -> None:

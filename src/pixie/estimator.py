@@ -24,13 +24,13 @@ from __future__ import annotations
 
 import logging
 import time
-from dataclasses import dataclass, field
+from dataclasses import dataclass
 
 import numpy as np
 
 from pixie.camera import check_image_K, optical_axis_in_object, rotation_angle_deg
 from pixie.config import PixieConfig
-from pixie.errors import ConfigError
+from pixie.errors import ConfigError, ImageError
 from pixie.features import Features
 from pixie.geometry import check_image
 from pixie.matching import Matcher, matcher_from_config
@@ -49,35 +49,15 @@ from pixie.query import QueryCrop, bbox_from_mask, check_bbox, square_crop
 from pixie.references import ReferenceSet, add_features
 from pixie.refine import aligned_correspondences, render_in_crop
 from pixie.render import Renderer
+from pixie.edges import EdgeQuery
+from pixie.shape import fused_score, shape_cues
+from pixie.results import NO_BOX_MESSAGE, Hypothesis, PoseResult, set_confidences
 from pixie.views import roll_angles
 
 log = logging.getLogger(__name__)
 
 # (view, roll) -> (pts2d (N, 2) photo px, pts3d (N, 3) object mm, similarities (N,)), float64
 Correspondences = dict[tuple[int, int], tuple[np.ndarray, np.ndarray, np.ndarray]]
-
-
-@dataclass
-class Hypothesis:
-    """One candidate pose: from reference (view, roll), with its PnP support."""
-
-    T_cam_from_obj: np.ndarray
-    score: float
-    n_inliers: int
-    n_matches: int
-    view: int
-    roll: int
-    rot_to_ref_deg: float
-    box_iou: float
-    sim_sum: float = 0.0  # summed matcher similarity (cosine for NN backends) of the PnP inliers
-    sim_mean: float = 0.0  # its mean over the inliers
-    source: str = "reference"  # 'reference' (first pass), 'view_selection', 'recrop', 'render' (render-at-estimate),
-    # 'edges' (contour template) or 'region' (region-refined)
-    match_score: float = 0.0  # the matcher's score before shape verification replaced ``score``
-    edge: float = float("nan")  # shape verification terms (pixie.shape), when run
-    region: float = float("nan")
-    terms: dict = field(default_factory=dict)  # every verification term (pixie.shape.ShapeCues.verify_terms)
-    matcher_best: bool = False  # the matcher's own choice (what the pipeline returns without shape cues)
 
 
 @dataclass
@@ -103,37 +83,9 @@ class Query:
     crops: list[QueryCrop]
     features: list[Features]
     background: float = 0.0
-    edges: object | None = None  # pixie.edges.EdgeQuery of the shape stage (config.shape), set by shape_stage
+    box_source: str = "bbox"  # where ``box`` came from: 'bbox' (given) or 'mask' (the mask's box)
+    edges: EdgeQuery | None = None  # the shape stage's edge query (config.shape), set by shape_stage
     best_match: float = 0.0  # best matcher score before shape verification (its scale), set by shape_stage
-
-
-@dataclass
-class PoseResult:
-    """What :meth:`PoseEstimator.estimate` returns. ``failed`` results still carry the best guess."""
-
-    T_cam_from_obj: np.ndarray | None
-    score: float
-    n_inliers: int
-    failed: bool
-    message: str
-    view: int = -1
-    roll: int = -1
-    confidence: float = 0.0
-    hypotheses: list[Hypothesis] = field(default_factory=list)
-    timings: dict[str, float] = field(default_factory=dict)
-
-    def to_dict(self) -> dict:
-        return {
-            "T_cam_from_obj": None if self.T_cam_from_obj is None else self.T_cam_from_obj.tolist(),
-            "score": self.score, "n_inliers": self.n_inliers, "failed": self.failed, "message": self.message,
-            "view": self.view, "roll": self.roll, "confidence": self.confidence, "timings": self.timings,
-            "hypotheses": [
-                {"T_cam_from_obj": h.T_cam_from_obj.tolist(), "score": h.score, "n_inliers": h.n_inliers,
-                 "view": h.view, "roll": h.roll, "source": h.source, "match_score": h.match_score,
-                 "edge": None if not np.isfinite(h.edge) else h.edge,
-                 "region": None if not np.isfinite(h.region) else h.region} for h in self.hypotheses
-            ],
-        }
 
 
 class PoseEstimator:
@@ -188,8 +140,6 @@ class PoseEstimator:
                           if self.cfg.refine.render_iters > 0 else None)
         self._shape = None
         if self.cfg.shape.enabled:
-            from pixie.shape import shape_cues
-
             self._shape = shape_cues(refs, self.cfg.shape)
 
     # ------------------------------------------------------------------------------------------------
@@ -234,7 +184,7 @@ class PoseEstimator:
         elif self._shape is not None:
             hyps = self.shape_stage(q, hyps, timings)
         timings["total"] = time.perf_counter() - t_all
-        return self.result(hyps, timings)
+        return self.record_inputs(self.result(hyps, timings), q)
 
     # ------------------------------------------------------------------------------------------ stages
     def prepare(self, image: np.ndarray, K: np.ndarray, bbox=None, mask: np.ndarray | None = None) -> Query:
@@ -247,13 +197,16 @@ class PoseEstimator:
         """
         image = check_image(image, "query image", min_side=8)
         K = check_image_K(K, image.shape[:2])
+        if bbox is None and mask is None:
+            raise ImageError(NO_BOX_MESSAGE)
+        box_source = "bbox" if bbox is not None else "mask"
         if bbox is None:
-            bbox = bbox_from_mask(mask) if mask is not None else np.array([0, 0, image.shape[1], image.shape[0]])
+            bbox = bbox_from_mask(mask)
         box = check_bbox(bbox, image.shape[:2])
         use_mask = mask if (mask is not None and self.cfg.query.mask_keypoints) else None
         crops = self.crops(image, box, use_mask)
         feats = [self.matcher.extract(c.image, mask=c.mask) for c in crops]
-        return Query(image, K, box, use_mask, crops, feats)
+        return Query(image, K, box, use_mask, crops, feats, box_source=box_source)
 
     def crops(self, image: np.ndarray, box: np.ndarray, mask: np.ndarray | None) -> list[QueryCrop]:
         """The query crop (``match.in_plane=reference``) or one crop per reference roll angle (``query``)."""
@@ -483,8 +436,6 @@ class PoseEstimator:
 
     def shape_verify(self, q: Query, hyps: list[Hypothesis]) -> list[Hypothesis]:
         """Verify the hypotheses not yet verified (their ``score`` is the matcher's) and rank all by fused score."""
-        from pixie.shape import fused_score
-
         sc = self.cfg.shape
         for h in hyps:
             if h.terms:
@@ -506,6 +457,14 @@ class PoseEstimator:
                 out.append(h)
         return out
 
+    def record_inputs(self, res: PoseResult, q: Query) -> PoseResult:
+        """Note on ``res`` what it was computed from: K, the box and its source, the mesh, preset, config, device."""
+        res.K, res.box_xyxy, res.box_source = np.asarray(q.K, np.float64), np.asarray(q.box, np.float64), q.box_source
+        res.mesh_name, res.mesh_sha256 = self.refs.mesh.name, self.refs.mesh.source_hash
+        res.preset, res.config_digest = self.cfg.preset, self.cfg.digest()
+        res.device = str(getattr(self.matcher, "device", "cpu"))
+        return res
+
     def result(self, hyps: list[Hypothesis], timings: dict[str, float] | None = None) -> PoseResult:
         """The best hypothesis as a :class:`PoseResult` with its confidence and the distinct runners-up."""
         timings = {} if timings is None else timings
@@ -513,9 +472,9 @@ class PoseEstimator:
             return PoseResult(None, 0.0, 0, True, "no pose: too few 2D-3D matches survived PnP+RANSAC", timings=timings)
         best = hyps[0]
         distinct = self.distinct(hyps, self.cfg.refine.n_hypotheses)
-        second = distinct[1].score if len(distinct) > 1 else 0.0
-        distinct += [h for h in hyps if h.matcher_best and all(h is not d for d in distinct)][:1]  # kept for comparisons
-        confidence = float(best.score / (best.score + second)) if best.score > 0 else 0.0
+        set_confidences(distinct)
+        confidence = distinct[0].confidence
+        distinct += [h for h in hyps if h.matcher_best and all(h is not d for d in distinct)][:1]  # for comparisons
         shape_pose = best.source in ("edges", "region") or np.isfinite(best.edge)
         failed = (best.n_inliers < max(self.cfg.pose.min_inliers, 1) and not shape_pose) or best.score <= 0
         msg = "ok" if not failed else "low support"

@@ -35,6 +35,8 @@ class Mesh:
     name : str
     source_hash : str
         SHA-256 of the file bytes (or of the arrays for in-memory meshes); reference sets record it.
+    file_units : str
+        Units the file was read in ('mm', 'cm', 'm'); ``units_auto`` says whether ``units='auto'`` chose them.
     """
 
     vertices: np.ndarray
@@ -42,6 +44,8 @@ class Mesh:
     vertex_normals: np.ndarray
     name: str = "mesh"
     source_hash: str = ""
+    file_units: str = "mm"
+    units_auto: bool = False
     _diameter: float | None = field(default=None, repr=False)
     _corner_normals: np.ndarray | None = field(default=None, repr=False)
     _hull_vertices: np.ndarray | None = field(default=None, repr=False)
@@ -144,7 +148,7 @@ def from_arrays(vertices: np.ndarray, faces: np.ndarray, name: str = "mesh", uni
     return _finish(v, f, name, digest, units)
 
 
-def load_mesh(path: str | Path, units: str = "mm") -> Mesh:
+def load_mesh(path: str | Path, units: str = "auto") -> Mesh:
     """Load a triangle mesh and return it in millimetres.
 
     Parameters
@@ -152,8 +156,8 @@ def load_mesh(path: str | Path, units: str = "mm") -> Mesh:
     path : str or Path
         PLY, OBJ, STL, GLB/GLTF or OFF file. Multi-part scenes are merged.
     units : {'mm', 'cm', 'm', 'auto'}
-        Units the file is written in. ``'auto'`` takes metres when the bounding-box diagonal
-        is below 2 (a part under 2 mm is unlikely), else millimetres.
+        Units the file is written in. ``'auto'`` (default) takes metres when the bounding-box diagonal
+        is below 2 (a part under 2 mm is unlikely), else millimetres; :func:`units_note` says what it chose.
 
     Raises
     ------
@@ -236,7 +240,8 @@ def _finish(v: np.ndarray, f: np.ndarray, name: str, digest: str, units: str) ->
     if f.min() < 0 or f.max() >= len(v):
         raise MeshError(f"mesh {name!r} has face indices outside its {len(v)} vertices")
     diag = float(np.linalg.norm(v.max(0) - v.min(0)))
-    if units == "auto":
+    auto = units == "auto"
+    if auto:
         units = "m" if diag < 2.0 else "mm"
         log.info("mesh %s: units=auto chose %s (bbox diagonal %.4g in file units)", name, units, diag)
     v = v * UNIT_SCALE[units]
@@ -255,7 +260,16 @@ def _finish(v: np.ndarray, f: np.ndarray, name: str, digest: str, units: str) ->
             stacklevel=3,
         )
     normals = _vertex_normals(v, f, area)
-    return Mesh(vertices=v, faces=f, vertex_normals=normals, name=name, source_hash=digest)
+    return Mesh(vertices=v, faces=f, vertex_normals=normals, name=name, source_hash=digest, file_units=units,
+                units_auto=auto)
+
+
+def units_note(mesh: Mesh) -> str:
+    """One line for people: the units the mesh was read in, how they were chosen, and its diameter in mm."""
+    name = {"mm": "millimetres", "cm": "centimetres", "m": "metres"}.get(mesh.file_units, mesh.file_units)
+    how = "auto-detected from its size" if mesh.units_auto else "as given"
+    return (f"mesh {mesh.name}: read in {name} ({how}), diameter {mesh.diameter:.1f} mm"
+            + ("; if that is wrong pass --units mm|cm|m" if mesh.units_auto else ""))
 
 
 def _vertex_normals(v: np.ndarray, f: np.ndarray, area: np.ndarray) -> np.ndarray:

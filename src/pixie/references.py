@@ -14,8 +14,6 @@ hash and the build config; a stale, foreign or corrupt file raises :class:`Refer
 from __future__ import annotations
 
 import json
-import os
-import tempfile
 import time
 import zipfile
 import zlib
@@ -33,6 +31,7 @@ from pixie.errors import ReferenceSetError
 from pixie.features import Features, pack_features, unpack_features
 from pixie.geometry import nearest_pixel
 from pixie.mesh import Mesh, from_arrays
+from pixie.outputs import check_output, write_with
 from pixie.render import Renderer
 from pixie.views import camera_distance, roll, roll_angles, square_crop_K, start_K, view_poses
 
@@ -69,7 +68,7 @@ class ReferenceSet:
     encodings: dict[str, np.ndarray] = field(default_factory=dict)
     features: dict[str, dict[str, np.ndarray]] = field(default_factory=dict)
     build_seconds: float = 0.0
-    templates: object | None = None  # pixie.contours.ContourTemplates (edge templates), when built
+    templates: dict[str, np.ndarray] | None = None  # contour templates as arrays (pixie.contours), when built
     _xyz: np.ndarray | None = field(default=None, repr=False)
 
     @property
@@ -343,26 +342,15 @@ def add_features(refs: ReferenceSet, matcher, encodings: list[str] | None = None
 
 
 def check_output_path(path: str | Path) -> Path:
-    """The ``.npz`` path a set will be written to; its folder is created and must be writable."""
-    path = Path(path)
-    if path.suffix != ".npz":
-        path = path.with_suffix(".npz")
-    parent = path.parent
-    try:
-        parent.mkdir(parents=True, exist_ok=True)
-    except OSError as exc:
-        raise ReferenceSetError(f"cannot create output folder {parent}: {exc}") from exc
-    if not os.access(parent, os.W_OK):
-        raise ReferenceSetError(f"output folder {parent} is not writable")
-    if path.is_dir():
-        raise ReferenceSetError(f"output {path} is a folder")
-    return path
+    """The path a set will be written to, exactly as given (no suffix added); its folder is created and must
+    be writable (see :func:`pixie.outputs.check_output`)."""
+
+    return check_output(path, ReferenceSetError)
 
 
 def save_reference_set(refs: ReferenceSet, path: str | Path) -> Path:
     """Write ``refs`` to ``path`` (.npz) atomically: a killed write leaves no partial file."""
     path = check_output_path(path)
-    parent = path.parent
     meta = {
         "format_version": FORMAT_VERSION,
         "pixie_version": __version__,
@@ -387,19 +375,10 @@ def save_reference_set(refs: ReferenceSet, path: str | Path) -> Path:
         for k, v in packed.items():
             arrays[f"feat/{key}/{k}"] = v
     if refs.templates is not None:
-        arrays.update({f"tpl/{k}": np.asarray(v) for k, v in refs.templates.to_arrays().items()})
-    fd, tmp = tempfile.mkstemp(prefix=f".{path.stem}.", suffix=".npz.tmp", dir=parent)
-    os.close(fd)
-    try:
-        with open(tmp, "wb") as fh:  # a file object: numpy would otherwise append '.npz' to the name
-            np.savez_compressed(fh, **arrays)
-            fh.flush()
-            os.fsync(fh.fileno())
-        os.replace(tmp, path)
-    except BaseException:
-        Path(tmp).unlink(missing_ok=True)
-        raise
-    return path
+        arrays.update({f"tpl/{k}": np.asarray(v) for k, v in refs.templates.items()})
+
+    # a file object: numpy would otherwise append '.npz' to the name
+    return write_with(path, lambda fh: np.savez_compressed(fh, **arrays), ReferenceSetError)
 
 
 def load_reference_set(path: str | Path, mesh: Mesh | None = None) -> ReferenceSet:
@@ -445,14 +424,9 @@ def load_reference_set(path: str | Path, mesh: Mesh | None = None) -> ReferenceS
         raise ReferenceSetError(f"{path} is missing data ({exc}): rebuild it") from exc
 
 
-def _templates_from(data: dict):
-    """Contour templates stored under 'tpl/' keys, or None."""
-    tpl = {k[4:]: v for k, v in data.items() if k.startswith("tpl/")}
-    if not tpl:
-        return None
-    from pixie.contours import ContourTemplates
-
-    return ContourTemplates.from_arrays(tpl)
+def _templates_from(data: dict) -> dict[str, np.ndarray] | None:
+    """Contour-template arrays stored under 'tpl/' keys (pixie.contours.ContourTemplates.from_arrays reads them)."""
+    return {k[4:]: v for k, v in data.items() if k.startswith("tpl/")} or None
 
 
 def _quantise_depth(depth: np.ndarray) -> dict[str, np.ndarray]:

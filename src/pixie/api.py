@@ -1,0 +1,125 @@
+"""One call from a CAD model (or a reference set) and a photo to a pose: :func:`estimate_pose`."""
+
+from __future__ import annotations
+
+import os
+from collections import OrderedDict
+from pathlib import Path
+from typing import Any, Sequence
+
+import numpy as np
+
+from pixie.camera import make_K, parse_K
+from pixie.config import DEFAULT_PRESET, PixieConfig
+from pixie.errors import ImageError
+from pixie.estimator import PoseEstimator
+from pixie.mesh import Mesh, load_mesh
+from pixie.query import load_image
+from pixie.references import ReferenceSet, load_reference_set
+from pixie.runner import cached_reference_set
+from pixie.weights import cache_dir
+
+__all__ = ["estimate_pose", "as_K"]
+
+MESH_SUFFIXES = (".ply", ".obj", ".stl", ".off", ".glb", ".gltf")
+_ESTIMATORS: "OrderedDict[tuple, Any]" = OrderedDict()  # a few ready estimators, so repeated calls skip loading
+_MAX_ESTIMATORS = 2
+
+
+def as_K(K: Any) -> np.ndarray:
+    """Intrinsics from a 3x3 matrix, ``(fx, fy, cx, cy)``, or the string ``"fx,fy,cx,cy"``."""
+
+    if isinstance(K, str):
+        return parse_K(K)
+    arr = np.asarray(K, dtype=np.float64)
+    if arr.shape == (4,):
+        return make_K(*arr)
+    return arr
+
+
+def _refs_cache() -> Path:
+
+    return cache_dir().parent / "refs"
+
+
+def _reference_set(obj: Any, cfg: PixieConfig, units: str, cache: Path | None):
+    """A ReferenceSet from a ReferenceSet, a Mesh, a mesh file (built once, cached) or a reference-set file."""
+
+    if isinstance(obj, ReferenceSet):
+        return obj, ("refs", id(obj))
+    if isinstance(obj, Mesh):
+        mesh = obj
+    else:
+        path = Path(os.fspath(obj))
+        if path.suffix.lower() not in MESH_SUFFIXES:
+            refs = load_reference_set(path)
+            return refs, ("file", str(path.resolve()), path.stat().st_mtime_ns)
+        mesh = load_mesh(path, units=units)
+    refs = cached_reference_set(mesh, cfg, cache or _refs_cache())
+    return refs, ("mesh", mesh.source_hash, mesh.file_units)
+
+
+def estimate_pose(mesh_or_refs: Any, image: Any, K: Any, bbox: Sequence[float] | None = None,
+                  mask: Any = None, *, preset: str = DEFAULT_PRESET, config: PixieConfig | None = None,
+                  units: str = "auto", device: str | None = None, cache_dir: str | Path | None = None):
+    """Estimate ``T_cam_from_obj`` of an object in one photo, in one call.
+
+    >>> import pixie
+    >>> result = pixie.estimate_pose("bracket.stl", "photo.png", K="600,600,320,240", bbox=(250, 180, 120, 110))
+    >>> result.T_cam_from_obj, result.confidence, result.failed
+
+    Parameters
+    ----------
+    mesh_or_refs
+        A CAD file (PLY/OBJ/STL/OFF/GLB; its reference set is built with the preset on first use and cached
+        in ``cache_dir``, default ``~/.cache/pixie/refs``), a reference-set file from ``pixie refs build``, a
+        :class:`~pixie.mesh.Mesh` or a :class:`~pixie.references.ReferenceSet`.
+    image
+        A file path, or an RGB ``uint8`` array (H, W, 3).
+    K
+        3x3 intrinsics, ``(fx, fy, cx, cy)`` or ``"fx,fy,cx,cy"`` (OpenCV, pixels).
+    bbox, mask
+        The object's box ``(x, y, w, h)`` (``w``, ``h`` counting pixels) or its mask (boolean array or image
+        path, white = object). One of them is required: pixie does not guess where the object is.
+    preset, config
+        ``config`` as is, else the preset (``fast``, ``default``, ``paper``).
+    units
+        Units of a mesh file (``auto`` by default: metres if under 2 units across, else mm).
+    device
+        ``auto``, ``cpu`` or ``cuda`` for the matcher (default: the config's).
+
+    Returns
+    -------
+    pixie.estimator.PoseResult
+        ``T_cam_from_obj`` (mm, OpenCV camera), ``failed``, ``confidence``, ``hypotheses``, ``timings``;
+        ``to_dict()`` for JSON.
+
+    Raises
+    ------
+    pixie.PixieError
+        Missing inputs, no box or mask, unreadable files, bad intrinsics.
+    """
+
+    if bbox is None and mask is None:
+        raise ImageError("no object box: pass bbox=(x, y, w, h) in pixels (w, h counting pixels) or mask=... "
+                         "(boolean array or mask image, white = object); pixie does not guess where the object is. "
+                         "To use the whole image on purpose pass bbox=(0, 0, width, height)")
+    cfg = config if config is not None else PixieConfig.from_preset(preset)
+    if device is not None:
+        cfg.match.device = device
+    if isinstance(image, (str, os.PathLike)):
+        image = load_image(image)
+    if mask is not None and isinstance(mask, (str, os.PathLike)):
+        mask = load_image(mask)[..., 0] > 127
+    refs, refs_id = _reference_set(mesh_or_refs, cfg, units, Path(cache_dir) if cache_dir else None)
+    key = (refs_id, cfg.digest())
+    est = _ESTIMATORS.get(key)
+    if est is None:
+        est = PoseEstimator(refs, PixieConfig.from_dict(cfg.to_dict()))
+        est.cfg.preset = cfg.preset
+        _ESTIMATORS[key] = est
+        while len(_ESTIMATORS) > _MAX_ESTIMATORS:
+            _ESTIMATORS.popitem(last=False)
+    else:
+        _ESTIMATORS.move_to_end(key)
+    return est.estimate(image, as_K(K), bbox=bbox, mask=mask)

@@ -1,0 +1,375 @@
+"""Many photos of one object: ``pixie estimate --batch FOLDER|MANIFEST -o OUT``.
+
+Inputs are a folder of images (one ``--K`` for all; one ``--bbox`` for all or a folder of masks with the
+images' names) or a manifest, CSV or JSON, one row per image::
+
+    image,K,bbox,mask
+    photos/a.png,"600,600,320,240","250,180,120,110",
+    photos/b.png,"600,600,320,240",,masks/b.png
+
+``K`` is ``fx,fy,cx,cy`` (or 9 values), ``bbox`` ``x,y,w,h`` in pixels (``w``, ``h`` counting pixels), ``mask``
+an image (white = object); every row needs a bbox or a mask. Optional columns ``scene_id``, ``im_id``,
+``obj_id`` go to the BOP CSV (defaults 0, the row number, 1). Paths are relative to the manifest.
+JSON manifests are a list of objects with the same keys (``K`` and ``bbox`` may be lists).
+
+One estimator serves every image (reference set loaded or built once). Outputs in ``OUT``:
+
+* ``results.csv`` -- BOP'19 results (scene_id, im_id, obj_id, score, R, t, time); failed rows keep their
+  best guess with score 0, rows without any pose are left out;
+* ``results.jsonl`` -- one full result per image, in input order (inputs, hashes, config, pose, hypotheses);
+* ``index.html`` + ``overlays/*.png`` -- one overlay per image;
+* ``journal.jsonl`` -- the cache that makes runs resumable: a record is reused when the image's bytes, its
+  K, box and mask, the configuration and the reference set are all the same (a changed config re-runs).
+"""
+
+from __future__ import annotations
+
+import csv
+import hashlib
+import html
+import json
+import os
+import time
+from dataclasses import dataclass
+from pathlib import Path
+from typing import Any, Callable
+
+import numpy as np
+
+from pixie.camera import make_K
+from pixie.cluster import WorkerSpec, ray_map, serial_map
+from pixie.config import PixieConfig
+from pixie.errors import ConfigError, ImageError, PixieError
+from pixie.estimator import PoseEstimator
+from pixie.eval.datasets import PoseEstimate, write_results_csv
+from pixie.outputs import write_atomic
+from pixie.query import bbox_from_mask, check_bbox, load_image
+from pixie.references import load_reference_set
+from pixie.render import Renderer
+from pixie.viz import encode_png, overlay_result
+from pixie.weights import sha256_file
+
+__all__ = ["BatchItem", "read_manifest", "folder_items", "run_batch", "IMAGE_SUFFIXES"]
+
+IMAGE_SUFFIXES = (".png", ".jpg", ".jpeg", ".bmp", ".tif", ".tiff")
+
+
+@dataclass
+class BatchItem:
+    """One photo to estimate: where it is, its intrinsics, and its box or mask."""
+
+    image: Path
+    K: np.ndarray
+    bbox: np.ndarray | None = None  # (x, y, w, h), w/h counting pixels
+    mask: Path | None = None
+    scene_id: int = 0
+    im_id: int = 0
+    obj_id: int = 1
+
+    @property
+    def name(self) -> str:
+        return self.image.name
+
+
+def _numbers(text: Any, what: str, where: str) -> list[float]:
+    if isinstance(text, (list, tuple)):
+        vals = list(np.asarray(text, dtype=np.float64).ravel())
+    else:
+        try:
+            vals = [float(v) for v in str(text).replace(";", ",").replace(" ", ",").split(",") if v.strip()]
+        except ValueError as exc:
+            raise ConfigError(f"{where}: cannot read {what} {text!r} as numbers") from exc
+    return vals
+
+
+def _K(value: Any, where: str) -> np.ndarray:
+
+    vals = _numbers(value, "K", where)
+    if len(vals) == 4:
+        return make_K(*vals)
+    if len(vals) == 9:
+        return np.asarray(vals, np.float64).reshape(3, 3)
+    raise ConfigError(f"{where}: K needs 4 values fx,fy,cx,cy (or 9), got {value!r}")
+
+
+def _bbox(value: Any, where: str) -> np.ndarray:
+    vals = _numbers(value, "bbox", where)
+    if len(vals) != 4:
+        raise ConfigError(f"{where}: bbox needs 4 values x,y,w,h, got {value!r}")
+    return np.asarray(vals, np.float64)
+
+
+NO_BOX_HELP = ("pixie needs the object's box or mask in every photo (the box sets the crop and the object's "
+               "distance): give a bbox x,y,w,h or a mask image")
+
+
+def read_manifest(path: str | Path) -> list[BatchItem]:
+    """Rows of a CSV or JSON manifest (see the module doc); paths are taken relative to the manifest.
+
+    Raises
+    ------
+    ConfigError
+        Unreadable manifest, missing columns, a row without K or without box and mask, bad numbers.
+    ImageError
+        Images or masks that do not exist (all of them are named).
+    """
+    path = Path(path)
+    if not path.is_file():
+        raise ConfigError(f"manifest not found: {path}")
+    try:
+        if path.suffix.lower() == ".json":
+            data = json.loads(path.read_text())
+            rows = data.get("rows") if isinstance(data, dict) else data
+            if not isinstance(rows, list) or not all(isinstance(r, dict) for r in rows):
+                raise ConfigError(f"manifest {path}: JSON must be a list of objects (or {{'rows': [...]}})")
+        else:
+            with open(path, newline="") as fh:
+                rows = list(csv.DictReader(fh))
+    except (OSError, ValueError, csv.Error) as exc:
+        raise ConfigError(f"cannot read manifest {path}: {exc}") from exc
+    if not rows:
+        raise ConfigError(f"manifest {path} has no rows")
+    base = path.parent
+    items: list[BatchItem] = []
+    missing: list[str] = []
+    for n, row in enumerate(rows):
+        row = {str(k).strip().lower(): v for k, v in row.items() if k is not None}
+        where = f"manifest {path.name} row {n + 1}"
+        if not row.get("image"):
+            raise ConfigError(f"{where}: no 'image' (columns: image, K, bbox, mask)")
+        if row.get("k") in (None, ""):
+            raise ConfigError(f"{where}: no 'K' (fx,fy,cx,cy)")
+        has_box = row.get("bbox") not in (None, "")
+        has_mask = row.get("mask") not in (None, "")
+        if not has_box and not has_mask:
+            raise ConfigError(f"{where}: no bbox and no mask; {NO_BOX_HELP}")
+        image = base / str(row["image"])
+        mask = base / str(row["mask"]) if has_mask else None
+        for p in (image, mask):
+            if p is not None and not p.is_file():
+                missing.append(f"{where}: {p}")
+        ids = {}
+        for key, default in (("scene_id", 0), ("im_id", n), ("obj_id", 1)):
+            try:
+                ids[key] = int(row[key]) if row.get(key) not in (None, "") else default
+            except (TypeError, ValueError) as exc:
+                raise ConfigError(f"{where}: {key} must be an integer, got {row[key]!r}") from exc
+        items.append(BatchItem(image, _K(row["k"], where), _bbox(row["bbox"], where) if has_box else None, mask, **ids))
+    if missing:
+        raise ImageError(f"{len(missing)} file(s) of the manifest do not exist:\n  " + "\n  ".join(missing[:20]))
+    return items
+
+
+def folder_items(folder: str | Path, K: str | np.ndarray | None, bbox: str | None = None,
+                 masks: str | Path | None = None) -> list[BatchItem]:
+    """Every image of ``folder`` (sorted by name) with one ``K``, and one ``bbox`` for all or a mask per image
+    (``masks/<same name>`` with any image suffix)."""
+    folder = Path(folder)
+    images = sorted(p for p in folder.iterdir() if p.is_file() and p.suffix.lower() in IMAGE_SUFFIXES)
+    if not images:
+        raise ImageError(f"no images ({', '.join(IMAGE_SUFFIXES)}) in {folder}")
+    if K is None:
+        raise ConfigError(f"a folder of images needs --K fx,fy,cx,cy (or use a manifest with a K per image)")
+    Km = _K(K, "--K") if not isinstance(K, np.ndarray) else K
+    if bbox is None and masks is None:
+        raise ConfigError(f"no box for the images in {folder}: {NO_BOX_HELP}. Pass --bbox x,y,w,h (one box for "
+                          "every image), --masks DIR (one mask per image, same file name), or a manifest")
+    items = []
+    for n, img in enumerate(images):
+        mask = None
+        if masks is not None:
+            cands = [Path(masks) / (img.stem + s) for s in IMAGE_SUFFIXES]
+            mask = next((c for c in cands if c.is_file()), None)
+            if mask is None:
+                raise ImageError(f"no mask for {img.name} in {masks} (looked for {img.stem}.png etc.)")
+        items.append(BatchItem(img, Km, None if bbox is None else _bbox(bbox, "--bbox"), mask, 0, n, 1))
+    return items
+
+
+def load_mask(path: str | Path) -> np.ndarray:
+    """A mask image as booleans (pixel values > 127 in the first channel are the object)."""
+
+    return load_image(path)[..., 0] > 127
+
+
+def sha256_bytes(data: bytes) -> str:
+    return hashlib.sha256(data).hexdigest()
+
+
+def item_key(item: BatchItem, image_sha: str, mask_sha: str | None, config_digest: str, refs_sha: str) -> str:
+    """Cache key of one result: image and mask bytes, K, box, configuration and reference set."""
+    blob = json.dumps({"image": image_sha, "mask": mask_sha, "K": np.round(item.K, 9).tolist(),
+                       "bbox": None if item.bbox is None else np.round(item.bbox, 6).tolist(),
+                       "config": config_digest, "refs": refs_sha}, sort_keys=True)
+    return hashlib.sha256(blob.encode()).hexdigest()[:20]
+
+
+# ----------------------------------------------------------------------------------------- workers
+def _setup(args: dict) -> dict:
+    """Worker state: the reference set (from file), one estimator and one renderer."""
+
+    cfg = PixieConfig.from_dict(args["config"])
+    cfg.preset = args.get("preset")
+    refs = load_reference_set(args["refs"])
+    return {"est": PoseEstimator(refs, cfg), "renderer": Renderer(refs.mesh), "overlays": args["overlays"],
+            "mesh_sha256": args.get("mesh_sha256")}
+
+
+def _process(state: dict, job: dict) -> dict:
+    """Estimate one photo; a bad input gives a failed record, never an exception."""
+
+    t0 = time.perf_counter()
+    rec = {k: job[k] for k in ("key", "row", "name", "image", "image_sha256", "K", "bbox", "mask",
+                               "scene_id", "im_id", "obj_id")}
+    try:
+        image = load_image(job["image"])
+        mask = load_mask(job["mask"]) if job["mask"] else None
+        K = np.asarray(job["K"], np.float64)
+        res = state["est"].estimate(image, K, bbox=job["bbox"], mask=mask)
+        rec["result"] = res.to_dict()
+        if state["overlays"]:
+
+            bbox = job["bbox"] if job["bbox"] is not None else bbox_from_mask(mask)
+            box = check_bbox(bbox, image.shape[:2])
+            label = f"{'FAILED ' if res.failed else ''}conf {res.confidence:.2f}"
+            rec["overlay_png"] = encode_png(overlay_result(image, state["renderer"], res.T_cam_from_obj, K, box, label))
+    except PixieError as exc:
+        rec["result"] = {"T_cam_from_obj": None, "failed": True, "message": f"{type(exc).__name__}: {exc}",
+                         "score": 0.0, "confidence": 0.0}
+    rec["time_s"] = time.perf_counter() - t0
+    return rec
+
+
+# ------------------------------------------------------------------------------------------ driver
+def _read_journal(path: Path) -> dict[str, dict]:
+    out: dict[str, dict] = {}
+    if path.is_file():
+        for line in path.read_text().splitlines():
+            try:
+                rec = json.loads(line)
+                out[rec["key"]] = rec
+            except (ValueError, KeyError, TypeError):  # a line cut by a kill: that image runs again
+                continue
+    return out
+
+
+@dataclass
+class BatchSummary:
+    n_items: int
+    n_cached: int
+    n_run: int
+    n_failed: int
+    seconds: float
+    results_csv: Path
+    results_jsonl: Path
+    html: Path
+    workers: int = 1
+
+
+def run_batch(items: list[BatchItem], out_dir: str | Path, config: PixieConfig, refs_path: str | Path,
+              *, threads: int = 1, use_ray: bool = False, address: str | None = None, workers: int | None = None,
+              overlays: bool = True, echo: Callable[[str], None] = print, show_progress: bool = True,
+              max_items: int | None = None) -> BatchSummary:
+    """Estimate every item with one reference set; resumable; writes the outputs listed in the module doc.
+
+    ``max_items`` stops after that many newly run items (the outputs then cover what is done so far).
+    """
+
+    t_start = time.perf_counter()
+    out = Path(out_dir)
+    (out / "overlays").mkdir(parents=True, exist_ok=True)
+    refs_path = Path(refs_path)
+    refs = load_reference_set(refs_path)  # fail early on a bad set; workers load it again from the file
+    mesh_sha = refs.mesh.source_hash
+    del refs
+    refs_sha = sha256_file(refs_path)
+    digest = config.digest()
+    jobs = []
+    for n, it in enumerate(items):
+        img_sha = sha256_file(it.image) if it.image.is_file() else "missing"
+        mask_sha = sha256_file(it.mask) if it.mask is not None and it.mask.is_file() else None
+        jobs.append({"key": item_key(it, img_sha, mask_sha, digest, refs_sha), "row": n, "name": it.name,
+                     "image": str(it.image), "image_sha256": img_sha, "K": it.K.tolist(),
+                     "bbox": None if it.bbox is None else it.bbox.tolist(),
+                     "mask": None if it.mask is None else str(it.mask),
+                     "scene_id": it.scene_id, "im_id": it.im_id, "obj_id": it.obj_id})
+    journal_path = out / "journal.jsonl"
+    done = _read_journal(journal_path)
+    todo = [j for j in jobs if j["key"] not in done]
+    n_cached = len(jobs) - len(todo)
+    if max_items is not None:
+        todo = todo[:max_items]
+    echo(f"{len(jobs)} images, {n_cached} cached, {len(todo)} to run -> {out}" + (f" (Ray{' at ' + address if address else ''})" if use_ray else ""))
+    bar = None
+    if show_progress and todo:
+        from tqdm import tqdm
+
+        bar = tqdm(total=len(todo), unit="image", dynamic_ncols=True)
+    n_workers = 1
+    with open(journal_path, "a") as journal:
+        def on_result(_: int, rec: dict) -> None:
+            png = rec.pop("overlay_png", None)
+            rec["overlay"] = None
+            if png is not None:
+                name = f"overlays/{rec['row']:05d}_{Path(rec['name']).stem}.png"
+                write_atomic(out / name, png)
+                rec["overlay"] = name
+            rec.update(config_digest=digest, preset=config.preset, refs=str(refs_path), refs_sha256=refs_sha,
+                       mesh_sha256=mesh_sha)
+            journal.write(json.dumps(rec) + "\n")
+            journal.flush()
+            done[rec["key"]] = rec
+            if bar is not None:
+                bar.update(1)
+
+
+        spec = WorkerSpec(_setup, _process, {"config": config.to_dict(), "preset": config.preset,
+                                             "refs": str(refs_path.resolve()), "overlays": overlays}, threads)
+        try:
+            if use_ray:
+                n_workers = ray_map(spec, todo, on_result, workers=workers, address=address)
+            elif todo:
+                serial_map(spec, todo, on_result)
+        finally:
+            if bar is not None:
+                bar.close()
+    records = [done[j["key"]] for j in jobs if j["key"] in done]
+    ests = []
+    for r in records:
+        res = r["result"]
+        if res.get("T_cam_from_obj") is not None:
+            ests.append(PoseEstimate(r["scene_id"], r["im_id"], r["obj_id"], 0.0 if res["failed"] else float(res["score"]),
+                                     np.asarray(res["T_cam_from_obj"]), float(r["time_s"])))
+    tmp_csv = write_results_csv(out / f".results.csv.{os.getpid()}.tmp", ests)
+    os.replace(tmp_csv, out / "results.csv")
+    write_atomic(out / "results.jsonl", "".join(json.dumps(r) + "\n" for r in records))
+    write_atomic(out / "index.html", _html(records, len(jobs), config))
+    n_failed = sum(1 for r in records if r["result"].get("failed"))
+    return BatchSummary(len(jobs), n_cached, len(todo), n_failed, time.perf_counter() - t_start,
+                        out / "results.csv", out / "results.jsonl", out / "index.html", n_workers)
+
+
+def _html(records: list[dict], n_total: int, config: PixieConfig) -> str:
+    rows = []
+    for r in records:
+        res = r["result"]
+        T = res.get("T_cam_from_obj")
+        t = "" if T is None else ", ".join(f"{v:.1f}" for v in np.asarray(T)[:3, 3])
+        status = "FAILED: " + html.escape(str(res.get("message", ""))) if res.get("failed") else "ok"
+        img = (f'<a href="{html.escape(r["overlay"])}"><img src="{html.escape(r["overlay"])}" width="320"></a>'
+               if r.get("overlay") else "")
+        rows.append(f"<tr><td>{r['row']}</td><td>{html.escape(r['name'])}</td><td>{img}</td><td>{status}</td>"
+                    f"<td>{res.get('score', 0):.2f}</td><td>{res.get('confidence', 0):.2f}</td><td>{t}</td>"
+                    f"<td>{r['time_s']:.1f}</td></tr>")
+    return f"""<!doctype html><html><head><meta charset="utf-8"><title>pixie batch</title>
+<style>body{{font-family:sans-serif}} td{{padding:4px;vertical-align:top;border-bottom:1px solid #ddd}}</style></head>
+<body><h1>pixie batch: {len(records)} of {n_total} images done</h1>
+<p>preset {html.escape(str(config.preset))}, config digest {config.digest()}. Overlay: model contour at the estimate (red),
+object axes at its origin (x red, y green, z blue), the given box (yellow). Confidence = best score / (best + second
+distinct hypothesis's score): a margin between hypotheses, not a calibrated probability. Translation t in mm, camera frame
+(OpenCV: x right, y down, z forward).</p>
+<table><tr><th>#</th><th>image</th><th>overlay</th><th>status</th><th>score</th><th>confidence</th><th>t (mm)</th>
+<th>s</th></tr>
+{chr(10).join(rows)}
+</table></body></html>
+"""

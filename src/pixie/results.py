@@ -1,0 +1,118 @@
+"""What the estimator returns: pose hypotheses and the result record, with what their numbers mean.
+
+:class:`Hypothesis` is one candidate pose with its PnP support; :class:`PoseResult` the chosen pose, its
+distinct runners-up and the inputs it came from; :func:`set_confidences` the (uncalibrated) confidence of each.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass, field
+
+import numpy as np
+
+from pixie._version import __version__
+
+__all__ = ["Hypothesis", "PoseResult", "set_confidences", "FRAME", "SCORE_NOTE", "CONFIDENCE_NOTE", "NO_BOX_MESSAGE"]
+
+FRAME = ("OpenCV camera (x right, y down, z forward); T_cam_from_obj maps object points (mm, the mesh's frame) "
+         "to camera points: x_cam = R x_obj + t")
+SCORE_NOTE = ("support of the pose: summed match similarity of its PnP inliers above the photo's background level, "
+              "times rotation-consistency and box-agreement factors (pose.scoring); comparable between the "
+              "hypotheses of one photo only")
+CONFIDENCE_NOTE = ("score / (score + the best distinct alternative's score): how much a hypothesis stands out, "
+                   "0.5 = a tie. Not calibrated: it is not a probability that the pose is correct")
+
+
+NO_BOX_MESSAGE = ("no object box: pass bbox=(x, y, w, h) in pixels (w, h counting pixels) or mask=... (white/True = "
+                  "object); pixie does not guess where the object is (the box sets the crop and the object's distance). "
+                  "To use the whole image on purpose pass bbox=(0, 0, width, height)")
+
+
+@dataclass
+class Hypothesis:
+    """One candidate pose: from reference (view, roll), with its PnP support."""
+
+    T_cam_from_obj: np.ndarray
+    score: float
+    n_inliers: int
+    n_matches: int
+    view: int
+    roll: int
+    rot_to_ref_deg: float
+    box_iou: float
+    sim_sum: float = 0.0  # summed matcher similarity (cosine for NN backends) of the PnP inliers
+    sim_mean: float = 0.0  # its mean over the inliers
+    source: str = "reference"  # 'reference' (first pass), 'view_selection', 'recrop' or 'render' (render-at-estimate)
+    confidence: float = 0.0  # set for returned hypotheses: score / (score + the best other distinct score)
+    # shape cues (config.shape): source may also be 'edges' (contour template) or 'region' (region-refined)
+    match_score: float = 0.0  # the matcher's score before shape verification replaced ``score``
+    edge: float = float("nan")  # edge agreement (pixie.shape), when verified
+    region: float = float("nan")  # region agreement, when verified
+    terms: dict = field(default_factory=dict)  # every verification term (pixie.shape.ShapeCues.verify_terms)
+    matcher_best: bool = False  # the matcher's own choice (what the pipeline returns without shape cues)
+
+
+@dataclass
+class PoseResult:
+    """What :meth:`PoseEstimator.estimate` returns. ``failed`` results still carry the best guess.
+
+    ``T_cam_from_obj`` is in mm, OpenCV camera frame (:data:`FRAME`). ``confidence`` (:data:`CONFIDENCE_NOTE`)
+    is not calibrated. The inputs used are recorded: ``K``, ``box_xyxy`` (the crop box, clipped to the image)
+    and ``box_source`` ('bbox' or 'mask'), the mesh's sha256, the preset, config digest and matcher device.
+    """
+
+    T_cam_from_obj: np.ndarray | None
+    score: float
+    n_inliers: int
+    failed: bool
+    message: str
+    view: int = -1
+    roll: int = -1
+    confidence: float = 0.0
+    hypotheses: list[Hypothesis] = field(default_factory=list)
+    timings: dict[str, float] = field(default_factory=dict)
+    K: np.ndarray | None = None
+    box_xyxy: np.ndarray | None = None
+    box_source: str | None = None
+    mesh_name: str | None = None
+    mesh_sha256: str | None = None
+    preset: str | None = None
+    config_digest: str | None = None
+    device: str | None = None
+
+    def to_dict(self) -> dict:
+        """Everything as JSON-able data (poses as nested lists, mm)."""
+        box = None
+        if self.box_xyxy is not None:
+            x0, y0, x1, y1 = (float(v) for v in self.box_xyxy)
+            box = {"xywh": [x0, y0, x1 - x0, y1 - y0], "source": self.box_source}
+        return {
+            "pixie_version": __version__,
+            "units": "mm",
+            "frame": FRAME,
+            "T_cam_from_obj": None if self.T_cam_from_obj is None else self.T_cam_from_obj.tolist(),
+            "failed": self.failed, "message": self.message,
+            "score": self.score, "score_note": SCORE_NOTE,
+            "confidence": self.confidence, "confidence_note": CONFIDENCE_NOTE,
+            "n_inliers": self.n_inliers, "view": self.view, "roll": self.roll,
+            "K": None if self.K is None else np.asarray(self.K).tolist(),
+            "box": box,
+            "mesh": {"name": self.mesh_name, "sha256": self.mesh_sha256},
+            "mesh_sha256": self.mesh_sha256,
+            "preset": self.preset, "config_digest": self.config_digest, "device": self.device,
+            "timings": self.timings,
+            "hypotheses": [
+                {"T_cam_from_obj": h.T_cam_from_obj.tolist(), "score": h.score, "confidence": h.confidence,
+                 "n_inliers": h.n_inliers, "view": h.view, "roll": h.roll, "source": h.source} for h in self.hypotheses
+            ],
+        }
+
+
+def set_confidences(hyps: list[Hypothesis]) -> None:
+    """Each hypothesis's confidence: its score / (its score + the best score among the others); 0 for score 0.
+
+    For the best of ``hyps`` (distinct poses, best first) this is best / (best + second).
+    """
+    for i, h in enumerate(hyps):
+        other = max((g.score for j, g in enumerate(hyps) if j != i), default=0.0)
+        h.confidence = float(h.score / (h.score + other)) if h.score > 0 else 0.0
