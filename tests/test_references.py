@@ -286,9 +286,11 @@ def test_load_without_mesh_uses_the_stored_one(saved_sift, proc_mesh):
     assert back.mesh.source_hash == proc_mesh.source_hash
 
 
-def test_save_adds_suffix_and_creates_folders(refs_plain, tmp_path):
+def test_save_keeps_the_name_and_creates_folders(refs_plain, tmp_path):
+    """The set is written at exactly the path given (issue 17: outputs are never renamed), folders created."""
     p = save_reference_set(refs_plain, tmp_path / "a" / "b" / "plain")
-    assert p == tmp_path / "a" / "b" / "plain.npz" and p.is_file()
+    assert p == tmp_path / "a" / "b" / "plain" and p.is_file()
+    assert not (tmp_path / "a" / "b" / "plain.npz").exists()
     assert load_reference_set(p).features == {}
 
 
