@@ -319,8 +319,17 @@ def run_pipeline(ds: BopDataset, targets: list[Target], cfg: PixieConfig, name: 
             dt = time.perf_counter() - t0
             err = pose_errors(od, res.T_cam_from_obj, g.T_cam_from_obj)
             # the distinct hypotheses (multi-hypothesis output): is any of them right?
-            hyp_ok = [bool(pose_errors(od, h.T_cam_from_obj, g.T_cam_from_obj)["add_ok"]) for h in res.hypotheses]
-            rec = {"hyp_add_ok": hyp_ok, "scene_id": t.scene_id, "im_id": t.im_id, "obj_id": t.obj_id, "visib": g.visib_fract,
+            hyp_err = [pose_errors(od, h.T_cam_from_obj, g.T_cam_from_obj) for h in res.hypotheses]
+            hyp_ok = [bool(e["add_ok"]) for e in hyp_err]
+            # score terms of each output hypothesis (offline re-ranking / fusion-weight studies)
+            hyp_terms = [{"source": h.source, "score": h.score, "match_score": h.match_score,
+                          "edge": None if not np.isfinite(h.edge) else h.edge,
+                          "region": None if not np.isfinite(h.region) else h.region,
+                          "terms": {k: (None if not np.isfinite(v) else v) for k, v in h.terms.items()},
+                          "n_inliers": h.n_inliers, "matcher_best": h.matcher_best,
+                          "add_ok": bool(e["add_ok"]), "rot_err": e["rot_err"], "add": e["add"]}
+                         for h, e in zip(res.hypotheses, hyp_err)]
+            rec = {"hyp_add_ok": hyp_ok, "hyps": hyp_terms, "scene_id": t.scene_id, "im_id": t.im_id, "obj_id": t.obj_id, "visib": g.visib_fract,
                    "T": None if res.T_cam_from_obj is None else res.T_cam_from_obj.tolist(), "score": res.score,
                    "n_inliers": res.n_inliers, "failed": res.failed, "view": res.view, "roll": res.roll,
                    "confidence": res.confidence, "message": res.message,
@@ -384,12 +393,13 @@ def format_table(rows: list[dict], oracle: bool = False) -> str:
                          f"{r['mean_inliers']:>9.1f}{100 * r['add_0.1d']:>8.1f}%{r['median_rot_err']:>8.1f}"
                          f"{r['median_trans_err']:>8.1f}{r['seconds_per_target']:>7.2f}")
         return "\n".join(lines)
-    head = (f"{'config':<28}{'n':>5}{'ADD<.1d':>9}{'any hyp':>8}{'AR(noVSD)':>10}{'rot°':>8}{'t mm':>8}{'s/tg':>7}  stages (extract/match/pnp/vs/rr)"
+    head = (f"{'config':<28}{'n':>5}{'ADD<.1d':>9}{'any hyp':>8}{'AR(noVSD)':>10}{'rot°':>8}{'t mm':>8}{'s/tg':>7}  stages (extract/match/pnp/vs/rr/edges/verify/region)"
             f"   refs s/obj, MB/obj")
     lines = [head]
     for r in rows:
         st = r["stage_seconds"]
-        stages = "/".join(f"{st.get(k, 0):.2f}" for k in ("extract", "match", "pnp", "view_selection", "render_refine"))
+        stages = "/".join(f"{st.get(k, 0):.2f}" for k in ("extract", "match", "pnp", "view_selection", "render_refine",
+                                                           "edge_retrieval", "verify", "region_refine"))
         ar = r.get("ar_no_vsd")
         b = r.get("refs_build_seconds_per_object")
         mb = r.get("refs_mb_per_object")

@@ -57,12 +57,20 @@ def lmo_meshes(lmo_dir):
 
 
 def aliked_weights_present() -> bool:
-    return WEIGHTS_DIR.is_dir() and any(WEIGHTS_DIR.glob("aliked-n16__*"))
+    """ALIKED-N16's weights resolve (they ship in the package, so also without ../shared)."""
+    from pixie.errors import WeightsError
+    from pixie.weights import resolve_weights
+
+    try:
+        resolve_weights("aliked-n16")
+    except WeightsError:
+        return False
+    return True
 
 
 @pytest.fixture(scope="session")
 def matcher_name() -> str:
-    """The learned matcher when its weights are in shared/weights, else the weight-free SIFT."""
+    """The learned matcher when its weights resolve (shipped in the package), else the weight-free SIFT."""
     return "aliked-nn" if aliked_weights_present() else "sift-nn"
 
 

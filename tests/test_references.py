@@ -287,6 +287,7 @@ def test_load_without_mesh_uses_the_stored_one(saved_sift, proc_mesh):
 
 
 def test_save_keeps_the_exact_name_and_creates_folders(refs_plain, tmp_path):
+    """The set is written at exactly the path given (issue 17: outputs are never renamed), folders created."""
     p = save_reference_set(refs_plain, tmp_path / "a" / "b" / "plain")
     assert p == tmp_path / "a" / "b" / "plain" and p.is_file()
     assert not (tmp_path / "a" / "b" / "plain.npz").exists()

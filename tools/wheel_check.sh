@@ -12,14 +12,20 @@ TMP="$(mktemp -d "${TMPDIR:-/tmp}/pixie-wheel-check.XXXXXX")"
 trap 'rm -rf "$TMP"' EXIT
 say() { printf '\n== wheel-check: %s\n' "$*"; }
 
-say "building the wheel"
+say "building the wheel (from a clean copy of the working tree: a stale build/ folder would leak old modules)"
+mkdir -p "$TMP/src"
+(cd "$REPO" && tar -cf - --exclude=./.git --exclude=./.venv --exclude=./build --exclude=./out --exclude='*.egg-info' \
+   --exclude=__pycache__ --exclude=./.lockenv .) | tar -xf - -C "$TMP/src"
 "$PY" -m venv "$TMP/build-venv"
 "$TMP/build-venv/bin/pip" install -q "pip==$PIP_VERSION"
-"$TMP/build-venv/bin/pip" wheel -q --no-deps -w "$TMP/dist" "$REPO"
+"$TMP/build-venv/bin/pip" wheel -q --no-deps -w "$TMP/dist" "$TMP/src"
 WHEEL="$(ls "$TMP"/dist/pixie_pose-*.whl)"
 ls -l "$WHEEL"
 unzip -l "$WHEEL" | grep -E "data/weights/aliked-n16.pth|LICENSE-ALIKED|PROVENANCE|configs/default.yaml" \
   || { echo "wheel-check: the wheel lacks its weights, licence, provenance or presets" >&2; exit 1; }
+if unzip -l "$WHEEL" | grep -qE " pixie/(matching|eval)\.py$"; then
+  echo "wheel-check: the wheel holds a stale module next to its package (pixie/matching.py or pixie/eval.py)" >&2; exit 1
+fi
 
 say "installing it into a clean venv (constraints.txt)"
 "$PY" -m venv "$TMP/venv"

@@ -245,12 +245,43 @@ _SECTION_NAMES = {RefsConfig: "refs", QueryConfig: "query", MatchConfig: "match"
 
 
 @dataclass
+class ShapeConfig:
+    """Shape cues beside the matcher (pixie.shape): contour templates, edge + region verification, region refinement.
+
+    Measured on LM-O dev (bench/RESULTS.md, "Shape cues"): fusing them with the matcher raised ADD(-S)<0.1d on 96
+    targets from 17 (the matcher's own choice in the same run) to 28. ``enabled=false`` is the pipeline without them.
+    """
+
+    enabled: bool = True
+    views: int = 300  # template views (Fibonacci; nearest-view gap ~7°), rendered at `size` px (depth + normals)
+    size: int = 128
+    points: int = 96  # oriented contour points per template (silhouette + creases)
+    rolls: int = 36  # in-plane angles searched (every 10°)
+    crease_weight: float = 0.5
+    min_mag: float = 6.0  # query gradient threshold (grey levels / px)
+    region_k: int = 300  # best (view, roll) pairs by edges that get a region score before ranking
+    region_weight: float = 1.0  # template ranking: edge + region_weight * (region - 0.5)
+    candidates: int = 16  # best template poses (15° apart) added as hypotheses
+    verify_matcher: int = 8  # best distinct matcher hypotheses verified beside them
+    # verification score = w_match * matcher score / best matcher score + w_edge * edge + w_region * (region - 0.5);
+    # set by bench/lmo_fusion.py's rule (most ADD hits, then most rotations < 15°, then the smallest total weight)
+    # on 96 LM-O dev targets over the grid w_match {0..2} x w_edge {0..4} x w_region {0..4}
+    w_match: float = 0.25
+    w_edge: float = 0.5
+    w_region: float = 4.0
+    before_render: bool = False  # verify before render-at-estimate refinement (which then refines the best fused)
+    refine_hypotheses: int = 0  # best verified hypotheses refined by region-based refinement (pixie.region); 0: off
+    refine_box_px: float = 96.0  # refinement crop: the box's longer side in px
+
+
+@dataclass
 class PixieConfig:
     refs: RefsConfig = field(default_factory=RefsConfig)
     query: QueryConfig = field(default_factory=QueryConfig)
     match: MatchConfig = field(default_factory=MatchConfig)
     pose: PoseConfig = field(default_factory=PoseConfig)
     refine: RefineConfig = field(default_factory=RefineConfig)
+    shape: ShapeConfig = field(default_factory=ShapeConfig)
     preset: str | None = field(default=None, compare=False)  # name of the preset it started from (None: dataclass defaults)
 
     def to_dict(self) -> dict[str, Any]:

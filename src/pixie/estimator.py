@@ -51,6 +51,8 @@ from pixie.query import QueryCrop, bbox_from_mask, check_bbox, check_query_mask,
 from pixie.references import ReferenceSet, add_features
 from pixie.refine import aligned_correspondences, render_in_crop
 from pixie.render import Renderer
+from pixie.edges import EdgeQuery
+from pixie.shape import fused_score, shape_cues
 from pixie.results import NO_BOX_MESSAGE, Hypothesis, PoseResult, set_confidences
 from pixie.views import roll_angles
 
@@ -86,6 +88,8 @@ class Query:
     features: list[Features]
     background: float = 0.0
     box_source: str = "bbox"  # where ``box`` came from: 'bbox' (given) or 'mask' (the mask's box)
+    edges: EdgeQuery | None = None  # the shape stage's edge query (config.shape), set by shape_stage
+    best_match: float = 0.0  # best matcher score before shape verification (its scale), set by shape_stage
 
 
 class PoseEstimator:
@@ -144,6 +148,9 @@ class PoseEstimator:
         self.box_points = refs.mesh.hull_vertices
         self._renderer = (Renderer(refs.mesh, smooth_normals=refs.config.smooth_normals)
                           if self.cfg.refine.render_iters > 0 else None)
+        self._shape = None
+        if self.cfg.shape.enabled:
+            self._shape = shape_cues(refs, self.cfg.shape)
 
     # ------------------------------------------------------------------------------------------------
     def estimate(self, image: np.ndarray, K: np.ndarray, bbox=None, mask: np.ndarray | None = None) -> PoseResult:
@@ -173,10 +180,19 @@ class PoseEstimator:
         hyps = self.select_views(q, hyps)
         timings["view_selection"] = time.perf_counter() - t
 
+        shape_first = self._shape is not None and self.cfg.shape.before_render
+        if shape_first:  # the fused ranking chooses what render refinement refines
+            hyps = self.shape_stage(q, hyps, timings)
         if self.cfg.refine.render_iters > 0 and hyps:
             t = time.perf_counter()
             hyps = self.render_refine(q, hyps)
             timings["render_refine"] = time.perf_counter() - t
+        if shape_first:
+            t = time.perf_counter()
+            hyps = self.shape_verify(q, hyps)
+            timings["verify"] += time.perf_counter() - t
+        elif self._shape is not None:
+            hyps = self.shape_stage(q, hyps, timings)
         timings["total"] = time.perf_counter() - t_all
         return self.record_inputs(self.result(hyps, timings, q), q)
 
@@ -400,6 +416,50 @@ class PoseEstimator:
                 cur = nh
         return sorted(hyps + new, key=lambda x: -x.score)
 
+    def shape_stage(self, q: Query, hyps: list[Hypothesis], timings: dict) -> list[Hypothesis]:
+        """Shape cues (``config.shape``): add the best edge-template poses to the best distinct matcher hypotheses,
+        verify every candidate by edge and region agreement, re-rank by the fused score and region-refine the best
+        few. Sets ``q.edges`` (the edge query) and ``q.best_match`` (the matcher score scale) for :meth:`shape_verify`."""
+        sc, cues = self.cfg.shape, self._shape
+        K, box = q.K, q.box
+        t = time.perf_counter()
+        q.edges = cues.query(q.image, box)
+        cands = cues.retrieve(q.edges, K, sc.candidates)
+        timings["edge_retrieval"] = time.perf_counter() - t
+        t = time.perf_counter()
+        q.best_match = max([h.score for h in hyps], default=0.0)
+        pool = self.distinct(hyps, sc.verify_matcher)
+        if pool:
+            pool[0].matcher_best = True
+        for c in cands:
+            T = depth_from_box(c.T_cam_from_obj, K, self.box_points, box) if self.cfg.pose.depth_from_bbox else c.T_cam_from_obj
+            pool.append(Hypothesis(T, 0.0, 0, 0, -1, -1, 0.0, box_iou(projected_box(T, K, self.box_points), box),
+                                   source="edges"))
+        pool = self.shape_verify(q, pool)
+        timings["verify"] = time.perf_counter() - t
+        if sc.refine_hypotheses > 0:
+            t = time.perf_counter()
+            for h in self.distinct(pool, sc.refine_hypotheses):
+                res = cues.refine(q.image, K, h.T_cam_from_obj, box, sc.refine_box_px)
+                pool.append(Hypothesis(res.T_cam_from_obj, h.match_score, h.n_inliers, h.n_matches, h.view, h.roll,
+                                       0.0, box_iou(projected_box(res.T_cam_from_obj, K, self.box_points), box),
+                                       h.sim_sum, h.sim_mean, source="region"))
+            pool = self.shape_verify(q, pool)
+            timings["region_refine"] = time.perf_counter() - t
+        return pool
+
+    def shape_verify(self, q: Query, hyps: list[Hypothesis]) -> list[Hypothesis]:
+        """Verify the hypotheses not yet verified (their ``score`` is the matcher's) and rank all by fused score."""
+        sc = self.cfg.shape
+        for h in hyps:
+            if h.terms:
+                continue
+            h.match_score = h.score if h.source != "edges" else 0.0
+            h.terms = self._shape.verify_terms(q.edges, q.K, h.T_cam_from_obj)
+            h.edge, h.region = h.terms["edge"], h.terms["region"]
+            h.score = fused_score(sc, h.match_score, q.best_match, h.edge, h.region)
+        return sorted(hyps, key=lambda h: -h.score)
+
     @staticmethod
     def distinct(hyps: list[Hypothesis], n: int, min_deg: float = 10.0) -> list[Hypothesis]:
         """The first ``n`` hypotheses that differ by more than ``min_deg`` in rotation (hyps sorted by score)."""
@@ -436,7 +496,9 @@ class PoseEstimator:
         distinct = self.distinct(hyps, self.cfg.refine.n_hypotheses)
         set_confidences(distinct)
         confidence = distinct[0].confidence
-        failed = best.n_inliers < max(self.cfg.pose.min_inliers, 1) or best.score <= 0
+        distinct += [h for h in hyps if h.matcher_best and all(h is not d for d in distinct)][:1]  # for comparisons
+        shape_pose = best.source in ("edges", "region") or np.isfinite(best.edge)
+        failed = (best.n_inliers < max(self.cfg.pose.min_inliers, 1) and not shape_pose) or best.score <= 0
         msg = "ok" if not failed else "low support"
         if q is not None:
             mesh = self.refs.mesh

@@ -71,6 +71,7 @@ class ReferenceSet:
     encodings: dict[str, np.ndarray] = field(default_factory=dict)
     features: dict[str, dict[str, np.ndarray]] = field(default_factory=dict)
     build_seconds: float = 0.0
+    templates: dict[str, np.ndarray] | None = None  # contour templates as arrays (pixie.contours), when built
     _xyz: np.ndarray | None = field(default=None, repr=False)
 
     @property
@@ -399,6 +400,8 @@ def save_reference_set(refs: ReferenceSet, path: str | Path) -> Path:
     for key, packed in refs.features.items():
         for k, v in packed.items():
             arrays[f"feat/{key}/{k}"] = v
+    if refs.templates is not None:
+        arrays.update({f"tpl/{k}": np.asarray(v) for k, v in refs.templates.items()})
     # atomic (a killed write leaves no partial file) and 0644; a file object, else numpy appends '.npz'
     return write_atomic(path, lambda fh: np.savez_compressed(fh, **arrays))
 
@@ -444,11 +447,17 @@ def load_reference_set(path: str | Path, mesh: Mesh | None = None) -> ReferenceS
             normals=_unit(data["normals_q"].astype(np.float32) / 127.0),
             encodings={k[4:]: v for k, v in data.items() if k.startswith("enc/")},
             features=feats, build_seconds=float(meta.get("build_seconds", 0.0)),
+            templates=_templates_from(data),
         )
     except (KeyError, TypeError) as exc:
         raise ReferenceSetError(f"{path} is missing data ({exc}): rebuild it") from exc
     except PixieError as exc:  # an invalid stored config or mesh
         raise ReferenceSetError(f"{path} holds invalid data ({exc}): rebuild it") from exc
+
+
+def _templates_from(data: dict) -> dict[str, np.ndarray] | None:
+    """Contour-template arrays stored under 'tpl/' keys (pixie.contours.ContourTemplates.from_arrays reads them)."""
+    return {k[4:]: v for k, v in data.items() if k.startswith("tpl/")} or None
 
 
 def _quantise_depth(depth: np.ndarray) -> dict[str, np.ndarray]:

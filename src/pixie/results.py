@@ -44,6 +44,12 @@ class Hypothesis:
     sim_mean: float = 0.0  # its mean over the inliers
     source: str = "reference"  # 'reference' (first pass), 'view_selection', 'recrop' or 'render' (render-at-estimate)
     confidence: float = 0.0  # set for returned hypotheses: score / (score + the best other distinct score)
+    # shape cues (config.shape): source may also be 'edges' (contour template) or 'region' (region-refined)
+    match_score: float = 0.0  # the matcher's score before shape verification replaced ``score``
+    edge: float = float("nan")  # edge agreement (pixie.shape), when verified
+    region: float = float("nan")  # region agreement, when verified
+    terms: dict = field(default_factory=dict)  # every verification term (pixie.shape.ShapeCues.verify_terms)
+    matcher_best: bool = False  # the matcher's own choice (what the pipeline returns without shape cues)
 
 
 @dataclass
