@@ -5,6 +5,9 @@
 >>> result = est.estimate(image, K, bbox=(x, y, w, h))
 >>> result.T_cam_from_obj, result.score, result.failed
 
+Longer than 500 lines on purpose: it is the one class that orders every stage (matcher, shape cues,
+view selection, render refinement, input and plausibility checks); each stage's work lives in its own module.
+
 :meth:`PoseEstimator.estimate` is one screen of stage calls; every stage is a public method that takes the
 per-query record :class:`Query` (and returns new values), so studies can run, replace or inspect any stage::
 
