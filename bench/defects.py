@@ -14,7 +14,7 @@ Steps:
    defective variants each (2), ``--colours`` colour variants (2), ``--images`` images per scene
    (1). Scenes per assembly = colours (targets) + defects (default: 4 scenes, 4 images per
    assembly). Table I is printed from its summary.
-2. For every scene (one physical object) run :class:`pixie.estimator.PoseEstimator` with the GT
+2. For every scene (one physical object) run :class:`pixie.pipeline.estimator.PoseEstimator` with the GT
    ``bbox_visib`` as the crop (the paper gives every method the boxes), with references built from
    (a) the *target* model and (b) the *defective* model actually shown (for target scenes (b) = (a),
    the run is reused). Encoding ablations (depth only / normal only / shade3_edges only) run with the
@@ -55,14 +55,14 @@ sys.path.insert(0, str(REPO / "src"))
 
 from pixie.config import PixieConfig  # noqa: E402
 from pixie.errors import PixieError  # noqa: E402
-from pixie.estimator import PoseEstimator  # noqa: E402
+from pixie.pipeline.estimator import PoseEstimator  # noqa: E402
 from pixie.eval import ObjectData, evaluate  # noqa: E402
-from pixie.eval import errors as M  # noqa: E402
+from pixie.eval import pose_error as M  # noqa: E402
 from pixie.eval.datasets import BopDataset, PoseEstimate, Target, symmetry_transforms, write_results_csv  # noqa: E402
-from pixie.eval.shape import aps  # noqa: E402
-from pixie.mesh import Mesh, load_mesh  # noqa: E402
-from pixie.render import Renderer  # noqa: E402
-from pixie.runner import Journal, cached_reference_set, make_matcher, reference_cache_path  # noqa: E402
+from pixie.eval.shape_metrics import aps  # noqa: E402
+from pixie.geometry.mesh import Mesh, load_mesh  # noqa: E402
+from pixie.geometry.render import Renderer  # noqa: E402
+from pixie.app.runner import Journal, cached_reference_set, make_matcher, reference_cache_path  # noqa: E402
 
 DEFAULT_DATA = REPO / "out/bench/defects_data"
 DEFAULT_OUT = REPO / "out/bench/defects"
@@ -127,7 +127,7 @@ class Models:
         return self._ren[path]
 
     def matcher(self, cfg: PixieConfig):
-        """The configured matcher (:func:`pixie.runner.make_matcher`: detection threshold and all), one per setting."""
+        """The configured matcher (:func:`pixie.app.runner.make_matcher`: detection threshold and all), one per setting."""
         m = cfg.match
         key = (m.matcher, m.max_keypoints, m.detection_threshold, m.window, m.weights_dir, m.device, cfg.refs.size)
         if key not in self._matcher:
@@ -136,7 +136,7 @@ class Models:
 
     def refs(self, path: Path, cfg: PixieConfig):
         """Reference set of a model with *all* encodings of ``cfg.refs`` (ablations pick a subset), cached on disk
-        by :func:`pixie.runner.cached_reference_set`."""
+        by :func:`pixie.app.runner.cached_reference_set`."""
         mesh = self.mesh(path)
         key = reference_cache_path(mesh, cfg, self.refs_dir)
         if key not in self._refs:

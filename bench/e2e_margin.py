@@ -23,10 +23,10 @@ sys.path.insert(0, str(Path(__file__).resolve().parents[1] / "tests"))
 from conftest import _procedural_trimesh, aliked_weights_present, torch_threads  # noqa: E402
 from test_pipeline import E2E_POSES, K_Q, e2e_config, generic_pose, pose_errors, render_photo  # noqa: E402
 
-from pixie.estimator import PoseEstimator  # noqa: E402
-from pixie.mesh import from_arrays  # noqa: E402
-from pixie.references import build_reference_set  # noqa: E402
-from pixie.runner import make_matcher  # noqa: E402
+from pixie.pipeline.estimator import PoseEstimator  # noqa: E402
+from pixie.geometry.mesh import from_arrays  # noqa: E402
+from pixie.references.set import build_reference_set  # noqa: E402
+from pixie.app.runner import make_matcher  # noqa: E402
 
 def main() -> None:
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])

@@ -139,7 +139,7 @@ class CachedAliked:
             self._inner = self._inner or self._factory()
             if self.grid and mask is not None:
                 from pixie.matching.adapter import aliked_extract
-                from pixie.geometry import check_image
+                from pixie.geometry.rotations import check_image
 
                 img = check_image(image)
                 kp, desc, sc, _ = aliked_extract(self._inner.net, img, np.asarray(mask, bool), self.grid)

@@ -5,10 +5,10 @@ Usage::
     PYTHONPATH=src .venv/bin/python bench/lmo_edges.py [--max-targets 96] [--views 300] [--rolls 36] \
         [--set key=value ...] [--out out/bench/lmo_edges.json]
 
-Per object, contour templates (:func:`pixie.contours.build_templates`: silhouette + crease points of
+Per object, contour templates (:func:`pixie.references.templates.build_templates`: silhouette + crease points of
 ``--views`` Fibonacci views rendered at low resolution) are built once. Per target the query crop (GT
-``bbox_visib``, pixie convention) gets orientation response maps (:func:`pixie.edges.prepare_query`) and every
-(view, roll) template is scored (:func:`pixie.edges.search`). Views are ranked by their best roll. A template
+``bbox_visib``, pixie convention) gets orientation response maps (:func:`pixie.cues.edges.prepare_query`) and every
+(view, roll) template is scored (:func:`pixie.cues.edges.search`). Views are ranked by their best roll. A template
 counts as right when its rotation is within ``--near`` degrees of the ground truth *as seen by a camera looking
 at the object centre* (the GT rotation turned by the smallest rotation taking the optical axis onto the ray to
 the object centre: templates look at the object centre too), minimised over the object's symmetries.
@@ -31,14 +31,14 @@ REPO = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(REPO / "bench"))
 import lmo_pipeline as L  # noqa: E402
 
-from pixie.camera import rotation_angle_deg  # noqa: E402
-from pixie.contours import build_templates, distinct_by_rotation  # noqa: E402
-from pixie.edges import prepare_query, search, template_bank  # noqa: E402
-from pixie.query import check_bbox  # noqa: E402
+from pixie.geometry.camera import rotation_angle_deg  # noqa: E402
+from pixie.references.templates import build_templates, distinct_by_rotation  # noqa: E402
+from pixie.cues.edges import prepare_query, search, template_bank  # noqa: E402
+from pixie.pipeline.query import check_bbox  # noqa: E402
 
 NAMES = {1: "ape", 5: "can", 6: "cat", 8: "driller", 9: "duck", 10: "eggbox", 11: "glue", 12: "holepuncher"}
 RANKS = (1, 5, 24)
-TEMPLATE_VERSION = "t6"  # bump when pixie.contours changes what it stores
+TEMPLATE_VERSION = "t6"  # bump when pixie.references.templates changes what it stores
 
 
 def centred_rotation(T: np.ndarray, centre: np.ndarray) -> np.ndarray:
@@ -68,7 +68,7 @@ def template_errors(tpl, angles: np.ndarray, R_c: np.ndarray, syms) -> np.ndarra
 
 def cached_templates(objects, oid: int, views: int, size: int, points: int):
     """Templates of one object, built once and kept in out/bench/templates/ (build time kept from the build)."""
-    from pixie.contours import ContourTemplates
+    from pixie.references.templates import ContourTemplates
 
     path = REPO / f"out/bench/templates/{TEMPLATE_VERSION}_v{views}_s{size}_p{points}/obj_{oid:06d}.npz"
     if path.is_file():
@@ -82,7 +82,7 @@ def cached_templates(objects, oid: int, views: int, size: int, points: int):
 
 def region_scores(tpl, q, v_i, a_i, info, band: float) -> np.ndarray:
     """Region agreement of the placed outlines of pairs (v_i, a_i) on the query crop."""
-    from pixie.region import polygon_scores
+    from pixie.cues.region import polygon_scores
 
     ang = info["angles"][a_i]
     c, s = np.cos(ang), np.sin(ang)

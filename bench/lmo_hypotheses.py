@@ -4,7 +4,7 @@ Usage::
 
     nice .venv/bin/python bench/lmo_hypotheses.py [--max-targets 96] [--set section.key=value ...]
 
-Runs :meth:`pixie.estimator.PoseEstimator.estimate` on each target (``bbox_visib`` as the crop, pixie's box
+Runs :meth:`pixie.pipeline.estimator.PoseEstimator.estimate` on each target (``bbox_visib`` as the crop, pixie's box
 convention) keeping *every* hypothesis it produced, and counts, of all targets, how many have ADD(-S)<0.1d
 
 * ``chosen``: the returned pose (what ``bench/lmo_pipeline.py`` scores);
@@ -36,11 +36,11 @@ import numpy as np
 sys.path.insert(0, str(Path(__file__).resolve().parent))
 import lmo_pipeline as L  # noqa: E402
 
-from pixie.estimator import PoseEstimator  # noqa: E402
+from pixie.pipeline.estimator import PoseEstimator  # noqa: E402
 from pixie.eval import pose_errors  # noqa: E402
-from pixie.pose import depth_from_box  # noqa: E402
-from pixie.query import check_bbox  # noqa: E402
-from pixie.runner import make_matcher  # noqa: E402
+from pixie.pose.solve import depth_from_box  # noqa: E402
+from pixie.pipeline.query import check_bbox  # noqa: E402
+from pixie.app.runner import make_matcher  # noqa: E402
 
 
 CSV_COLUMNS = ["obj_id", "scene_id", "im_id", "pose", "score", "n_hypotheses", "hypothesis_poses"]

@@ -9,10 +9,10 @@ Every ``--config`` is run in turn (with the global ``--set`` overrides applied f
 ``--config`` the defaults (+ ``--set``) run as ``default``. Per configuration it
 
 * builds (or loads from ``out/bench/refs/``) one reference set per object with
-  :func:`pixie.runner.cached_reference_set` (its key covers the mesh, ``cfg.refs`` and the matcher's
+  :func:`pixie.app.runner.cached_reference_set` (its key covers the mesh, ``cfg.refs`` and the matcher's
   extraction settings, so configurations that only differ in matching/pose settings share references);
 * runs ``PoseEstimator.estimate(image, K, bbox=bbox_visib)`` per target and appends one JSON line per
-  target to ``<out>/runs/<run hash>/targets.jsonl`` (a :class:`pixie.runner.Journal`: finished targets are skipped);
+  target to ``<out>/runs/<run hash>/targets.jsonl`` (a :class:`pixie.app.runner.Journal`: finished targets are skipped);
 * writes ``<out>/runs/<run hash>/results.csv`` (BOP'19 format) and ``<out>/<NAME>.json``, and prints a table.
 
 Metrics: ADD(-S)<0.1d (ADD-S for the symmetric objects 10 and 11, BOP evaluation models), median
@@ -45,20 +45,20 @@ import numpy as np
 REPO = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(REPO / "src"))
 
-from pixie.camera import make_T, project, transform_points  # noqa: E402
+from pixie.geometry.camera import make_T, project, transform_points  # noqa: E402
 from pixie.config import PixieConfig  # noqa: E402
-from pixie.encode import encode  # noqa: E402
-from pixie.estimator import PoseEstimator  # noqa: E402
+from pixie.references.encode import encode  # noqa: E402
+from pixie.pipeline.estimator import PoseEstimator  # noqa: E402
 from pixie.eval import evaluate, load_object_data, pose_errors  # noqa: E402
 from pixie.eval.datasets import BopDataset, PoseEstimate, Target, write_results_csv  # noqa: E402
-from pixie.geometry import rotation_between  # noqa: E402
-from pixie.mesh import load_mesh  # noqa: E402
-from pixie.pose import lift  # noqa: E402
-from pixie.query import check_bbox, square_crop  # noqa: E402
-from pixie.references import ReferenceSet, keypoint_xyz_from_depth  # noqa: E402
-from pixie.render import Renderer  # noqa: E402
-from pixie.runner import Journal, cached_reference_set, make_matcher, reference_cache_path  # noqa: E402
-from pixie.views import camera_distance, square_crop_K, start_K  # noqa: E402
+from pixie.geometry.rotations import rotation_between  # noqa: E402
+from pixie.geometry.mesh import load_mesh  # noqa: E402
+from pixie.pose.solve import lift  # noqa: E402
+from pixie.pipeline.query import check_bbox, square_crop  # noqa: E402
+from pixie.references.set import ReferenceSet, keypoint_xyz_from_depth  # noqa: E402
+from pixie.geometry.render import Renderer  # noqa: E402
+from pixie.app.runner import Journal, cached_reference_set, make_matcher, reference_cache_path  # noqa: E402
+from pixie.references.views import camera_distance, square_crop_K, start_K  # noqa: E402
 
 DEFAULT_DATASET = REPO.parent / "shared/data/lmo_dev/lmo"
 DEFAULT_OUT = REPO / "out/bench/lmo_pipeline"
@@ -120,7 +120,7 @@ def gt_instance(ds: BopDataset, t: Target):
 class ObjectCache:
     """Per object: model mesh (mm), eval data (diameter, ADD points, symmetry), reference sets per config.
 
-    Reference sets come from :func:`pixie.runner.cached_reference_set` (one cache in ``out/bench/refs``, shared
+    Reference sets come from :func:`pixie.app.runner.cached_reference_set` (one cache in ``out/bench/refs``, shared
     with other bench processes); ``build_seconds`` and ``refs_bytes`` record what they cost.
     """
 

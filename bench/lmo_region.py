@@ -5,8 +5,8 @@ Usage::
     PYTHONPATH=src .venv/bin/python bench/lmo_region.py [--max-targets 96] [--deg 8] [--out out/bench/lmo_region.json]
 
 Per target the start pose is the GT rotation turned by ``--deg`` degrees about a random axis (seeded per
-target) through the object centre, with the distance from the visible box (:func:`pixie.pose.depth_from_box`
-on GT ``bbox_visib``, as the pipeline sets it). It is refined with :meth:`pixie.shape.ShapeCues.refine`
+target) through the object centre, with the distance from the visible box (:func:`pixie.pose.solve.depth_from_box`
+on GT ``bbox_visib``, as the pipeline sets it). It is refined with :meth:`pixie.cues.shape.ShapeCues.refine`
 (region-based, along correspondence lines). Reports ADD(-S)<0.1d, median rotation error and relative depth
 error before and after, per object, and seconds per refinement.
 """
@@ -26,11 +26,11 @@ REPO = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(REPO / "bench"))
 import lmo_pipeline as L  # noqa: E402
 
-from pixie.camera import make_T  # noqa: E402
-from pixie.contours import build_templates  # noqa: E402
-from pixie.pose import depth_from_box  # noqa: E402
-from pixie.query import check_bbox  # noqa: E402
-from pixie.shape import ShapeCues  # noqa: E402
+from pixie.geometry.camera import make_T  # noqa: E402
+from pixie.references.templates import build_templates  # noqa: E402
+from pixie.pose.solve import depth_from_box  # noqa: E402
+from pixie.pipeline.query import check_bbox  # noqa: E402
+from pixie.cues.shape import ShapeCues  # noqa: E402
 
 NAMES = {1: "ape", 5: "can", 6: "cat", 8: "driller", 9: "duck", 10: "eggbox", 11: "glue", 12: "holepuncher"}
 

@@ -5,7 +5,7 @@ Usage::
     nice .venv/bin/python bench/lmo_retrieval.py [--max-targets 48] [--set section.key=value ...] [--near 20]
 
 For every target the query crop (``bbox_visib``) is matched against every (view, roll) pair of the object's
-reference set exactly as :class:`pixie.estimator.PoseEstimator` does before PnP. Each pair is then ranked by
+reference set exactly as :class:`pixie.pipeline.estimator.PoseEstimator` does before PnP. Each pair is then ranked by
 several statistics of its matches (count, summed similarity, summed similarity above the query's background
 level = ``pose.candidate_ranking=excess``, top-10 similarity, mean similarity), and the script reports how
 often a pair whose rotation is within ``--near`` degrees of the ground truth is ranked 1st / in the top 5, 10,
@@ -25,9 +25,9 @@ import numpy as np
 sys.path.insert(0, str(Path(__file__).resolve().parent))
 import lmo_pipeline as L  # noqa: E402
 
-from pixie.camera import rotation_angle_deg  # noqa: E402
-from pixie.estimator import PoseEstimator  # noqa: E402
-from pixie.runner import make_matcher  # noqa: E402
+from pixie.geometry.camera import rotation_angle_deg  # noqa: E402
+from pixie.pipeline.estimator import PoseEstimator  # noqa: E402
+from pixie.app.runner import make_matcher  # noqa: E402
 
 RANKS = (1, 5, 10, 24, 50)
 

@@ -34,8 +34,8 @@ REPO = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(REPO / "src"))
 
 from pixie.config import PixieConfig, RefsConfig, preset_names  # noqa: E402
-from pixie.mesh import load_mesh  # noqa: E402
-from pixie.references import build_reference_set, save_reference_set  # noqa: E402
+from pixie.geometry.mesh import load_mesh  # noqa: E402
+from pixie.references.set import build_reference_set, save_reference_set  # noqa: E402
 
 DEFAULT_DATASET = REPO.parent / "shared/data/lmo_dev/lmo"
 BAR_S = 30.0
@@ -87,11 +87,11 @@ def main(argv: list[str] | None = None) -> int:
         return 2
     matcher = None
     if args.threads:
-        from pixie.cluster import set_threads
+        from pixie.app.cluster import set_threads
 
         set_threads(args.threads)
     if args.preset:
-        from pixie.runner import make_matcher
+        from pixie.app.runner import make_matcher
 
         full = PixieConfig.from_preset(args.preset)
         cfg = full.refs
@@ -122,7 +122,7 @@ def main(argv: list[str] | None = None) -> int:
             cpu_main = time.process_time() - c0
             t1 = time.perf_counter()
             if args.keep and args.preset:
-                from pixie.runner import reference_cache_path
+                from pixie.app.runner import reference_cache_path
 
                 out = save_reference_set(refs, reference_cache_path(mesh, full, args.keep))
             else:

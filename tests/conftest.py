@@ -15,9 +15,9 @@ import numpy as np
 import pytest
 import trimesh
 
-from pixie.camera import make_T
-from pixie.mesh import from_arrays
-from pixie.render import Renderer, composite
+from pixie.geometry.camera import make_T
+from pixie.geometry.mesh import from_arrays
+from pixie.geometry.render import Renderer, composite
 
 from pixie.weights import shared_root
 
@@ -51,7 +51,7 @@ def lmo_dataset(lmo_dir):
 @pytest.fixture(scope="session")
 def lmo_meshes(lmo_dir):
     """LM-O models 1, 5 and 8 as pixie meshes (mm), keyed by object id."""
-    from pixie.mesh import load_mesh
+    from pixie.geometry.mesh import load_mesh
 
     return {o: load_mesh(lmo_dir / "models" / f"obj_{o:06d}.ply") for o in (1, 5, 8)}
 
@@ -108,8 +108,8 @@ def proc_trimesh():
 
 @pytest.fixture(scope="session")
 def proc_mesh(proc_trimesh):
-    """The procedural part as a pixie :class:`~pixie.mesh.Mesh` (mm)."""
-    from pixie.mesh import from_arrays
+    """The procedural part as a pixie :class:`~pixie.geometry.mesh.Mesh` (mm)."""
+    from pixie.geometry.mesh import from_arrays
 
     return from_arrays(np.asarray(proc_trimesh.vertices), np.asarray(proc_trimesh.faces), name="proc")
 
@@ -119,7 +119,7 @@ def sphere_mesh():
     """An icosphere of radius 50 mm (smooth: vertex normals are the true normals)."""
     import trimesh
 
-    from pixie.mesh import from_arrays
+    from pixie.geometry.mesh import from_arrays
 
     s = trimesh.creation.icosphere(subdivisions=4, radius=50.0)
     return from_arrays(np.asarray(s.vertices), np.asarray(s.faces), name="sphere")
@@ -131,7 +131,7 @@ def sphere_mesh():
 @pytest.fixture(scope="session")
 def K640():
     """A VGA camera, f = 600 px, principal point slightly off-centre."""
-    from pixie.camera import make_K
+    from pixie.geometry.camera import make_K
 
     return make_K(600.0, 605.0, 321.5, 238.0)
 
@@ -148,7 +148,7 @@ def pose_facing(mesh, rng: np.random.Generator, distance_factor: float = 4.0, of
 
     ``offset_px`` shifts the centre sideways by about that many pixels (for f ~ 600).
     """
-    from pixie.camera import make_T
+    from pixie.geometry.camera import make_T
 
     R = random_rotation(rng)
     z = distance_factor * mesh.diameter
@@ -198,7 +198,7 @@ def one_torch_thread():
 @pytest.fixture(scope="session")
 def build_refs():
     """``build_refs(mesh, refs_config, matcher=None, workers=1)``: build_reference_set with one torch thread."""
-    from pixie.references import build_reference_set
+    from pixie.references.set import build_reference_set
 
     def _build(mesh, cfg, matcher=None, workers: int = 1):
         with torch_threads(1):
@@ -221,7 +221,7 @@ def rotvec(axis, deg):
 
 
 def box_mesh(extents, center=(0.0, 0.0, 0.0)):
-    """A box :class:`~pixie.mesh.Mesh` (test helper: ``from conftest import box_mesh``)."""
+    """A box :class:`~pixie.geometry.mesh.Mesh` (test helper: ``from conftest import box_mesh``)."""
     b = trimesh.creation.box(extents=extents)
     b.apply_translation(center)
     return from_arrays(b.vertices, b.faces, name="box")

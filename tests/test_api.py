@@ -15,9 +15,9 @@ pytestmark = pytest.mark.usefixtures("one_torch_thread")
 def part_files(tmp_path_factory):
     import trimesh
 
-    from pixie.demo import generated_part, generated_photo
-    from pixie.query import bbox_from_mask
-    from pixie.render import Renderer
+    from pixie.app.demo import generated_part, generated_photo
+    from pixie.pipeline.query import bbox_from_mask
+    from pixie.geometry.render import Renderer
     from pixie.viz import save_png
 
     root = tmp_path_factory.mktemp("api")

@@ -20,24 +20,19 @@ SRC = Path(__file__).resolve().parents[1] / "src" / "pixie"
 # Lowest first. A module may import modules of its own or a lower layer. Packages are listed by prefix.
 LAYERS: list[tuple[str, ...]] = [
     ("pixie._version", "pixie.errors", "pixie.paths"),
-    ("pixie.config", "pixie.weights", "pixie.geometry"),
-    ("pixie.camera", "pixie.mesh"),
-    ("pixie.render", "pixie.views", "pixie.encode", "pixie.features", "pixie.query",
-     "pixie.plausibility"),
-    ("pixie.references",),
+    ("pixie.config", "pixie.weights"),
+    ("pixie.geometry",),  # rotations -> camera -> mesh -> render
+    ("pixie.features", "pixie.pipeline.query"),  # the keypoint contract; photo loading and crops (the cues use them)
+    ("pixie.references",),  # views -> encode -> templates -> set
     ("pixie.matching",),
-    ("pixie.pose",),
-    # cues beside refinement: edge/contour templates, region refinement (pixie.contours, pixie.edges, pixie.region)
-    ("pixie.refine", "pixie.contours", "pixie.edges", "pixie.region", "pixie.cues", "pixie.shape"),
-    ("pixie.results", "pixie.estimator"),
-    ("pixie.viz",),
+    ("pixie.pose",),  # solve, plausibility, results
+    ("pixie.cues",),  # edges, region, refine -> shape: where new cues and edge refinement go
+    ("pixie.pipeline",),  # estimator (query sits lower, above)
+    ("pixie.viz",),  # contact sheets, overlays (eval's report draws them too)
     ("pixie.eval",),
     ("pixie.synth",),
     ("pixie.train",),
-    ("pixie.cluster",),
-    ("pixie.runner", "pixie.batch"),
-    ("pixie.api", "pixie.demo"),
-    ("pixie.cli",),
+    ("pixie.app",),  # cluster -> runner -> batch -> api, demo -> cli
 ]
 
 # Third-party packages that may be imported inside functions: optional extras or heavy imports that only
@@ -55,6 +50,8 @@ LAZY_THIRD_PARTY = {
     "multiprocessing",  # reference rendering with workers > 1 only
     "concurrent",
     "ray",  # the `ray` extra: --ray runs only
+    "cv2",  # pixie.threads only: the thread policy must be importable before OpenCV, numpy and torch load
+    "threadpoolctl",  # optional: BLAS pool sizes in pixie.threads
 }
 
 MAX_LINES = 500
@@ -76,7 +73,7 @@ MODULES = _modules()
 
 
 def _resolve(name: str) -> str:
-    """The module an imported dotted name refers to (``pixie.eval.errors.add`` -> ``pixie.eval.errors``)."""
+    """The module an imported dotted name refers to (``pixie.eval.pose_error.add`` -> ``pixie.eval.pose_error``)."""
     while name and name not in MODULES:
         name = name.rpartition(".")[0]
     return name

@@ -2,7 +2,7 @@
 names the problem (exit 2), a result flagged failed, or a documented warning -- never a traceback, never a
 silently wrong pose, never lost or half-written output.
 
-The tests drive ``pixie.cli.main`` in-process (exit code, stdout, stderr) and, for signals, a ``pixie``
+The tests drive ``pixie.app.cli.main`` in-process (exit code, stdout, stderr) and, for signals, a ``pixie``
 subprocess. Fixtures are tiny (a 6-view, 2-roll, 64 px reference set of a ~90 mm procedural part) so the
 whole file runs in seconds.
 """
@@ -25,7 +25,7 @@ import cv2
 import numpy as np
 import pytest
 
-from pixie.cli import main
+from pixie.app.cli import main
 
 SRC = Path(__file__).resolve().parents[1] / "src"
 W, H = 320, 240
@@ -61,12 +61,12 @@ def assert_error(res: tuple[int, str, str], *needles: str, rc: int = 2) -> str:
 @pytest.fixture(scope="module")
 def work(tmp_path_factory, proc_trimesh):
     """Folder with part.ply (the procedural part), photo.png (it rendered at 320x240) and refs.npz."""
-    from pixie.camera import make_K, make_T
+    from pixie.geometry.camera import make_K, make_T
     from pixie.config import RefsConfig
     from pixie.matching import get_matcher
-    from pixie.mesh import load_mesh
-    from pixie.references import build_reference_set, save_reference_set
-    from pixie.render import Renderer
+    from pixie.geometry.mesh import load_mesh
+    from pixie.references.set import build_reference_set, save_reference_set
+    from pixie.geometry.render import Renderer
 
     d = tmp_path_factory.mktemp("bad_inputs")
     proc_trimesh.export(d / "part.ply")
@@ -341,7 +341,7 @@ def test_huge_image_header_refused_before_decoding(work, tmp_path):
 
 
 def test_image_channel_formats_load_as_rgb(work, tmp_path):
-    from pixie.query import load_image
+    from pixie.pipeline.query import load_image
 
     rgb = cv2.imread(str(work["photo"]))[..., ::-1]
     grey = rgb[..., 0]
@@ -373,7 +373,7 @@ def _jpeg_with_orientation(src: Path, dst: Path, orientation: int) -> Path:
 
 
 def test_exif_rotated_jpeg_keeps_stored_pixels_and_says_so(work, tmp_path):
-    from pixie.query import load_image
+    from pixie.pipeline.query import load_image
 
     plain = load_image(_jpeg_with_orientation(work["photo"], tmp_path / "plain.jpg", 1))
     with pytest.warns(UserWarning, match="EXIF orientation"):
@@ -386,9 +386,9 @@ def test_exif_rotated_jpeg_keeps_stored_pixels_and_says_so(work, tmp_path):
 
 def test_float_array_image_refused_by_api(work):
     from pixie.errors import ImageError
-    from pixie.estimator import PoseEstimator
+    from pixie.pipeline.estimator import PoseEstimator
     from pixie.config import PixieConfig
-    from pixie.references import load_reference_set
+    from pixie.references.set import load_reference_set
 
     est = PoseEstimator(load_reference_set(work["refs"]), _fast_cfg())
     with pytest.raises(ImageError, match="uint8"):
@@ -487,9 +487,9 @@ def test_mask_and_box_disjoint(work, tmp_path):
 
 def test_api_mask_of_another_size(work):
     from pixie.errors import ImageError
-    from pixie.references import load_reference_set
-    from pixie.estimator import PoseEstimator
-    from pixie.camera import parse_K
+    from pixie.references.set import load_reference_set
+    from pixie.pipeline.estimator import PoseEstimator
+    from pixie.geometry.camera import parse_K
 
     est = PoseEstimator(load_reference_set(work["refs"]), _fast_cfg())
     img = cv2.imread(str(work["photo"]))[..., ::-1].copy()
@@ -552,8 +552,8 @@ def test_refs_missing_an_array(work, tmp_path):
 
 def test_foreign_refs_refused_by_api(work, tmp_path):
     from pixie.errors import ReferenceSetError
-    from pixie.mesh import load_mesh
-    from pixie.references import load_reference_set
+    from pixie.geometry.mesh import load_mesh
+    from pixie.references.set import load_reference_set
 
     other = load_mesh(write_ply(tmp_path / "other.ply", TETRA, TETRA_F))
     with pytest.raises(ReferenceSetError, match="another mesh"):
@@ -744,7 +744,7 @@ def test_run_bad_objects(work, lmo_dir, tmp_path):
 
 def _spawn(*argv) -> subprocess.Popen:
     env = dict(os.environ, PYTHONPATH=str(SRC), PYTHONUNBUFFERED="1", OMP_NUM_THREADS="1")
-    return subprocess.Popen([sys.executable, "-m", "pixie.cli", *map(str, argv)], env=env,
+    return subprocess.Popen([sys.executable, "-m", "pixie.app.cli", *map(str, argv)], env=env,
                             stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True, start_new_session=True)
 
 
@@ -844,12 +844,12 @@ def test_sigkill_of_parent_leaves_no_workers(work, tmp_path):
 
 
 def test_api_wrong_argument_types(work):
-    from pixie.camera import validate_K
+    from pixie.geometry.camera import validate_K
     from pixie.config import PixieConfig
     from pixie.errors import PixieError
-    from pixie.mesh import load_mesh
-    from pixie.query import load_image
-    from pixie.references import build_reference_set, load_reference_set
+    from pixie.geometry.mesh import load_mesh
+    from pixie.pipeline.query import load_image
+    from pixie.references.set import build_reference_set, load_reference_set
 
     for call in (lambda: load_mesh(None), lambda: load_image(3), lambda: load_reference_set(None),
                  lambda: build_reference_set("part.ply"), lambda: validate_K(None), lambda: validate_K("K"),
@@ -861,8 +861,8 @@ def test_api_wrong_argument_types(work):
 
 def test_api_build_accepts_a_whole_config(work):
     from pixie.config import PixieConfig
-    from pixie.mesh import load_mesh
-    from pixie.references import build_reference_set
+    from pixie.geometry.mesh import load_mesh
+    from pixie.references.set import build_reference_set
 
     cfg = PixieConfig()
     cfg.set("refs.n_fibonacci", 0)
@@ -877,7 +877,7 @@ def test_api_build_accepts_a_whole_config(work):
 
 
 def _projected_box(mesh, T, K):
-    from pixie.camera import project, transform_points
+    from pixie.geometry.camera import project, transform_points
 
     uv = project(K, transform_points(T, mesh.vertices))
     return np.r_[uv.min(0) + 0.5, uv.max(0) + 0.5]
@@ -885,15 +885,15 @@ def _projected_box(mesh, T, K):
 
 @pytest.fixture(scope="module")
 def plaus(work):
-    from pixie.camera import parse_K
-    from pixie.mesh import load_mesh
+    from pixie.geometry.camera import parse_K
+    from pixie.geometry.mesh import load_mesh
 
     mesh = load_mesh(work["mesh"])
     return mesh, work["T"], parse_K(K_TEXT)
 
 
 def _contradictions(mesh, T, K, box):
-    from pixie.plausibility import pose_contradictions
+    from pixie.pose.plausibility import pose_contradictions
 
     return pose_contradictions(T, K, box, mesh.hull_vertices, mesh.center, mesh.bounding_radius)
 
@@ -944,12 +944,12 @@ def test_two_threads_share_one_estimator(work):
     import copy
     from concurrent.futures import ThreadPoolExecutor
 
-    from pixie.camera import parse_K
+    from pixie.geometry.camera import parse_K
     from pixie.config import RefsConfig
-    from pixie.estimator import PoseEstimator
+    from pixie.pipeline.estimator import PoseEstimator
     from pixie.matching import get_matcher
-    from pixie.mesh import load_mesh
-    from pixie.references import build_reference_set
+    from pixie.geometry.mesh import load_mesh
+    from pixie.references.set import build_reference_set
 
     cfg = _fast_cfg()
     cfg.set("refine.render_iters", 1)
@@ -980,8 +980,8 @@ def test_two_threads_share_one_estimator(work):
 
 
 def test_estimator_flags_a_pose_that_contradicts_its_box(work, plaus):
-    from pixie.estimator import Hypothesis, PoseEstimator
-    from pixie.references import load_reference_set
+    from pixie.pipeline.estimator import Hypothesis, PoseEstimator
+    from pixie.references.set import load_reference_set
 
     mesh, T, K = plaus
     est = PoseEstimator(load_reference_set(work["refs"]), _fast_cfg())

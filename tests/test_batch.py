@@ -1,4 +1,4 @@
-"""Batch estimation (pixie.batch): manifests, refusing rows without a box, resuming, config-keyed caching,
+"""Batch estimation (pixie.app.batch): manifests, refusing rows without a box, resuming, config-keyed caching,
 and Ray runs equal to serial ones."""
 
 from __future__ import annotations
@@ -10,7 +10,7 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-from pixie.batch import folder_items, read_manifest, run_batch
+from pixie.app.batch import folder_items, read_manifest, run_batch
 from pixie.config import PixieConfig, RefsConfig
 from pixie.errors import ConfigError, ImageError
 from pixie.viz import save_png
@@ -29,11 +29,11 @@ def tiny_config() -> PixieConfig:
 @pytest.fixture(scope="module")
 def batch_inputs(tmp_path_factory, build_refs):
     """Three generated photos of the demo part (different colours and clutter), K, boxes, and a saved reference set."""
-    from pixie.demo import generated_part, generated_photo
-    from pixie.query import bbox_from_mask
-    from pixie.references import save_reference_set
-    from pixie.render import Renderer
-    from pixie.runner import make_matcher
+    from pixie.app.demo import generated_part, generated_photo
+    from pixie.pipeline.query import bbox_from_mask
+    from pixie.references.set import save_reference_set
+    from pixie.geometry.render import Renderer
+    from pixie.app.runner import make_matcher
 
     root = tmp_path_factory.mktemp("batch")
     mesh = generated_part()
@@ -146,9 +146,9 @@ def test_ray_batch_equals_serial(batch_inputs, tmp_path):
 
 
 def test_estimator_refuses_no_box(batch_inputs):
-    from pixie.estimator import PoseEstimator
-    from pixie.query import load_image
-    from pixie.references import load_reference_set
+    from pixie.pipeline.estimator import PoseEstimator
+    from pixie.pipeline.query import load_image
+    from pixie.references.set import load_reference_set
 
     root, refs_path, cfg, rows = batch_inputs
     est = PoseEstimator(load_reference_set(refs_path), cfg)

@@ -12,8 +12,8 @@ import numpy as np
 import pytest
 
 import pixie
-from pixie.cli import main
-from pixie.render import Renderer
+from pixie.app.cli import main
+from pixie.geometry.render import Renderer
 
 pytestmark = pytest.mark.usefixtures("one_torch_thread")
 
@@ -112,7 +112,7 @@ def test_weights_lists_the_shipped_extractor(capsys):
 def test_refs_build_keeps_the_output_name(tmp_path, capsys):
     import trimesh
 
-    from pixie.demo import generated_part
+    from pixie.app.demo import generated_part
 
     m = generated_part()
     stl = tmp_path / "bracket.stl"
@@ -131,8 +131,8 @@ def test_estimate_from_a_mesh_builds_references_once(tmp_path, monkeypatch, caps
     """`pixie estimate --mesh` builds the reference set into the user cache once; the JSON names its inputs."""
     import trimesh
 
-    from pixie.demo import generated_part, generated_photo
-    from pixie.query import bbox_from_mask
+    from pixie.app.demo import generated_part, generated_photo
+    from pixie.pipeline.query import bbox_from_mask
     from pixie.viz import save_png
 
     monkeypatch.setenv("XDG_CACHE_HOME", str(tmp_path / "cache"))

@@ -9,7 +9,7 @@ from pathlib import Path
 import pytest
 
 from pixie.config import PixieConfig, RefsConfig
-from pixie.runner import run_dataset
+from pixie.app.runner import run_dataset
 
 
 def _rows(path: Path) -> list[list[str]]:

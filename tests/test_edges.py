@@ -1,4 +1,4 @@
-"""Contour templates (pixie.contours) and the edge cue (pixie.edges): geometry round trips, retrieval on
+"""Contour templates (pixie.references.templates) and the edge cue (pixie.cues.edges): geometry round trips, retrieval on
 rendered photos of an asymmetric CAD-like part with random colours over clutter, and a real LM-O photo."""
 
 from __future__ import annotations
@@ -6,11 +6,11 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
-from pixie.camera import make_K, project, transform_points
-from pixie.contours import CREASE, SILHOUETTE, build_templates
-from pixie.edges import prepare_query, quantised_orientations, search, template_bank
-from pixie.query import bbox_from_mask, check_bbox
-from pixie.render import Renderer
+from pixie.geometry.camera import make_K, project, transform_points
+from pixie.references.templates import CREASE, SILHOUETTE, build_templates
+from pixie.cues.edges import prepare_query, quantised_orientations, search, template_bank
+from pixie.pipeline.query import bbox_from_mask, check_bbox
+from pixie.geometry.render import Renderer
 
 K = make_K(600.0, 600.0, 319.5, 239.5)
 H, W = 480, 640
@@ -87,7 +87,7 @@ def test_edge_search_ranks_a_view_near_the_truth_first(proc_mesh, proc_templates
 
 def test_edge_search_on_a_real_lmo_photo(lmo_dataset):
     """On LM-O every score is finite and in [0, 1], and placements are inside the crop."""
-    from pixie.mesh import load_mesh
+    from pixie.geometry.mesh import load_mesh
 
     t = next(t for t in lmo_dataset.targets() if t.obj_id == 5)
     g = max((g for g in lmo_dataset.instances(t.scene_id, t.im_id) if g.obj_id == 5), key=lambda g: g.visib_fract)
@@ -105,12 +105,12 @@ def test_edge_search_on_a_real_lmo_photo(lmo_dataset):
 def test_templates_are_stored_with_the_reference_set(proc_mesh, tmp_path):
     """Templates kept in a reference set survive save/load exactly; a set without them loads None."""
     from pixie.config import RefsConfig
-    from pixie.references import build_reference_set, load_reference_set, save_reference_set
+    from pixie.references.set import build_reference_set, load_reference_set, save_reference_set
 
     refs = build_reference_set(proc_mesh, RefsConfig(n_fibonacci=2, rotations=1, size=64, encodings=["depth"]))
     save_reference_set(refs, tmp_path / "plain.npz")
     assert load_reference_set(tmp_path / "plain.npz").templates is None
-    from pixie.contours import ContourTemplates
+    from pixie.references.templates import ContourTemplates
 
     tpl = build_templates(proc_mesh, n_views=10, size=64, n_points=32)
     refs.templates = tpl.to_arrays()

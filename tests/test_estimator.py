@@ -7,9 +7,9 @@ import pytest
 from test_pipeline import E2E_POSES, K_Q, check_result, e2e_config, generic_pose, pose_errors, render_photo
 
 from pixie.errors import ConfigError
-from pixie.estimator import PoseEstimator
-from pixie.pose import background_similarity
-from pixie.runner import make_matcher
+from pixie.pipeline.estimator import PoseEstimator
+from pixie.pose.solve import background_similarity
+from pixie.app.runner import make_matcher
 
 pytestmark = pytest.mark.usefixtures("one_torch_thread")
 

@@ -9,7 +9,7 @@ import numpy as np
 import pytest
 from conftest import rotvec
 
-from pixie.camera import make_K, make_T
+from pixie.geometry.camera import make_K, make_T
 from pixie.eval.datasets import BopDataset, PoseEstimate, gt_as_estimates, write_results_csv
 from pixie.eval import evaluate, format_table, run_eval
 

@@ -20,7 +20,7 @@ from pixie.eval.datasets import (
     write_results_csv,
 )
 from pixie.errors import DatasetError, ImageError
-from pixie.query import check_bbox
+from pixie.pipeline.query import check_bbox
 
 LMO = Path(__file__).resolve().parents[1].parent / "shared/data/lmo_dev/lmo"
 needs_lmo = pytest.mark.skipif(
@@ -106,7 +106,7 @@ def test_discrete_symmetry_maps_model_onto_itself():
     """obj 10 (eggbox): the declared symmetry moves every vertex onto the surface again."""
     from scipy.spatial import cKDTree
 
-    from pixie.mesh import load_mesh
+    from pixie.geometry.mesh import load_mesh
 
     ds = BopDataset(LMO)
     info = ds.model_info(10, eval=True)

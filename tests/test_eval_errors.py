@@ -1,4 +1,4 @@
-"""Pose errors (pixie.eval.errors) against hand-computable cases."""
+"""Pose errors (pixie.eval.pose_error) against hand-computable cases."""
 
 from __future__ import annotations
 
@@ -8,9 +8,9 @@ import numpy as np
 import pytest
 from conftest import box_mesh, rotvec
 
-from pixie.camera import make_K, make_T
-from pixie.eval import errors as M
-from pixie.render import Renderer
+from pixie.geometry.camera import make_K, make_T
+from pixie.eval import pose_error as M
+from pixie.geometry.render import Renderer
 
 K = make_K(500.0, 500.0, 160.0, 120.0)
 H, W = 240, 320
@@ -78,7 +78,7 @@ def test_mspd_known_pixel_shift():
 @pytest.mark.parametrize("obj_id", [10, 11])
 def test_symmetric_lmo_object_rotated_by_its_symmetry(lmo_dataset, obj_id):
     from pixie.eval.datasets import symmetry_transforms
-    from pixie.mesh import load_mesh
+    from pixie.geometry.mesh import load_mesh
 
     ds = lmo_dataset
     info = ds.model_info(obj_id, eval=True)

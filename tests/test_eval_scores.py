@@ -5,7 +5,7 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
-from pixie.eval import errors
+from pixie.eval import pose_error as errors
 from pixie.eval import scores as M
 
 

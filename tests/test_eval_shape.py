@@ -1,4 +1,4 @@
-"""Shape agreement (pixie.eval.shape): APS and IoU3D against cases with known answers."""
+"""Shape agreement (pixie.eval.shape_metrics): APS and IoU3D against cases with known answers."""
 
 from __future__ import annotations
 
@@ -9,10 +9,10 @@ import pytest
 import trimesh
 from conftest import box_mesh, rotvec
 
-from pixie.camera import make_K, make_T
-from pixie.eval import shape as M
-from pixie.mesh import from_arrays
-from pixie.render import Renderer
+from pixie.geometry.camera import make_K, make_T
+from pixie.eval import shape_metrics as M
+from pixie.geometry.mesh import from_arrays
+from pixie.geometry.render import Renderer
 
 K = make_K(500.0, 500.0, 160.0, 120.0)
 H, W = 240, 320

@@ -12,14 +12,14 @@ import numpy as np
 import pytest
 import trimesh
 
-from pixie import camera as cam
-from pixie import views
-from pixie.encode import ENCODINGS, check_encodings, edge_map, encode
+from pixie.geometry import camera as cam
+from pixie.references import views
+from pixie.references.encode import ENCODINGS, check_encodings, edge_map, encode
 from pixie.errors import CameraError, ConfigError, ImageError, MeshError
-from pixie.geometry import check_image, check_mask, lookup, nearest_pixel, orthonormalize, rodrigues, rotation_between
-from pixie.mesh import from_arrays, load_mesh
-from pixie.query import check_bbox, square_crop
-from pixie.render import Renderer
+from pixie.geometry.rotations import check_image, check_mask, lookup, nearest_pixel, orthonormalize, rodrigues, rotation_between
+from pixie.geometry.mesh import from_arrays, load_mesh
+from pixie.pipeline.query import check_bbox, square_crop
+from pixie.geometry.render import Renderer
 
 H, W = 480, 640
 
@@ -534,7 +534,7 @@ def test_empty_crop_bbox_is_an_image_error():
     np.testing.assert_allclose(check_bbox((-10, 5, 100, 1000), (480, 640)), [0, 5, 90, 480])
 
 
-# ------------------------------------------------------------------------ pixie.geometry helpers
+# ------------------------------------------------------------------------ pixie.geometry.rotations helpers
 
 
 def test_orthonormalize():

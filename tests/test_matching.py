@@ -156,7 +156,7 @@ def test_image_checks() -> None:
         m.extract([[1, 2], [3, 4]])  # type: ignore[arg-type]
     with pytest.raises(ImageError, match="mask"):
         m.extract(np.zeros((32, 32), np.uint8), np.ones((16, 16), bool))
-    # the one image rule (pixie.geometry.check_image): an alpha channel is dropped, like the query's
+    # the one image rule (pixie.geometry.rotations.check_image): an alpha channel is dropped, like the query's
     rgb = cv2.cvtColor(np.random.default_rng(0).integers(0, 255, (64, 64), np.uint8), cv2.COLOR_GRAY2RGB)
     rgba = np.dstack([rgb, np.full((64, 64), 7, np.uint8)])
     np.testing.assert_array_equal(m.extract(rgba).keypoints, m.extract(rgb).keypoints)

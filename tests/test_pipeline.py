@@ -10,14 +10,14 @@ import numpy as np
 import pytest
 import trimesh
 
-from pixie.camera import look_at, make_K, optical_axis_in_object, rotation_angle_deg, validate_pose
+from pixie.geometry.camera import look_at, make_K, optical_axis_in_object, rotation_angle_deg, validate_pose
 from pixie.config import PixieConfig, RefsConfig
-from pixie.encode import encode
+from pixie.references.encode import encode
 from pixie.errors import CameraError, ImageError
-from pixie.estimator import PoseEstimator
-from pixie.render import Renderer
-from pixie.runner import make_matcher
-from pixie.views import max_angular_gap_deg, roll
+from pixie.pipeline.estimator import PoseEstimator
+from pixie.geometry.render import Renderer
+from pixie.app.runner import make_matcher
+from pixie.references.views import max_angular_gap_deg, roll
 
 pytestmark = pytest.mark.usefixtures("one_torch_thread")
 

@@ -8,10 +8,10 @@ import math
 import numpy as np
 import pytest
 
-from pixie.camera import make_K, project, rotation_angle_deg, transform_points
+from pixie.geometry.camera import make_K, project, rotation_angle_deg, transform_points
 from pixie.errors import ConfigError
 from pixie.features import Matches
-from pixie.pose import (
+from pixie.pose.solve import (
     background_similarity,
     box_iou,
     depth_from_box,
@@ -156,7 +156,7 @@ def test_box_iou():
 def test_hull_vertices_give_the_exact_projected_box(lmo_meshes, make_pose):
     """The estimator's box points (convex-hull vertices) are fewer than the vertices yet project to exactly
     the same box (a vertex subsample, the old rule, came out smaller and pulled box depth ~0.6 % too close)."""
-    from pixie.mesh import from_arrays
+    from pixie.geometry.mesh import from_arrays
 
     for oid, mesh in lmo_meshes.items():
         hull = mesh.hull_vertices

@@ -16,11 +16,11 @@ import numpy as np
 import pytest
 import trimesh
 
-from pixie.camera import backproject_depth, invert_T, transform_points
+from pixie.geometry.camera import backproject_depth, invert_T, transform_points
 from pixie.config import RefsConfig
 from pixie.errors import ReferenceSetError
-from pixie.mesh import from_arrays
-from pixie.references import (
+from pixie.geometry.mesh import from_arrays
+from pixie.references.set import (
     FORMAT_VERSION,
     add_features,
     build_reference_set,
@@ -29,8 +29,8 @@ from pixie.references import (
     load_reference_set,
     save_reference_set,
 )
-from pixie.render import Renderer
-from pixie.views import roll, square_crop_K, start_K
+from pixie.geometry.render import Renderer
+from pixie.references.views import roll, square_crop_K, start_K
 
 pytestmark = pytest.mark.usefixtures("one_torch_thread")
 
@@ -139,7 +139,7 @@ def render_count(monkeypatch) -> dict[str, int]:
             count["renders"] += 1
             return super().render(*args, **kwargs)
 
-    monkeypatch.setattr("pixie.references.Renderer", CountingRenderer)
+    monkeypatch.setattr("pixie.references.set.Renderer", CountingRenderer)
     return count
 
 
@@ -383,8 +383,8 @@ _WRITER = textwrap.dedent(
     import sys
     import numpy as np
     from pixie.config import RefsConfig
-    from pixie.mesh import from_arrays
-    from pixie.references import ReferenceSet, save_reference_set
+    from pixie.geometry.mesh import from_arrays
+    from pixie.references.set import ReferenceSet, save_reference_set
 
     # a big set of incompressible arrays: each save takes seconds
     rng = np.random.default_rng(0)

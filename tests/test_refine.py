@@ -6,11 +6,11 @@ import cv2
 import numpy as np
 import pytest
 
-from pixie.camera import make_K, project, rotation_angle_deg, transform_points
+from pixie.geometry.camera import make_K, project, rotation_angle_deg, transform_points
 from pixie.errors import CameraError
-from pixie.query import check_bbox, square_crop
-from pixie.refine import aligned_correspondences, crop_intrinsics, keypoint_xyz, render_in_crop
-from pixie.render import Renderer
+from pixie.pipeline.query import check_bbox, square_crop
+from pixie.cues.refine import aligned_correspondences, crop_intrinsics, keypoint_xyz, render_in_crop
+from pixie.geometry.render import Renderer
 
 K = make_K(600.0, 605.0, 321.5, 238.0)
 H, W = 480, 640
@@ -60,8 +60,8 @@ def test_aligned_matching_refines_a_perturbed_pose(proc_mesh, matcher_name):
     """Two refinement steps from a pose 8° off on a textured render bring it within 2.5° (a real ALIKED match)."""
     from test_pipeline import K_Q, generic_pose, render_photo
 
-    from pixie.pose import solve_pnp_ransac
-    from pixie.runner import make_matcher
+    from pixie.pose.solve import solve_pnp_ransac
+    from pixie.app.runner import make_matcher
     from pixie.config import PixieConfig
 
     if matcher_name == "sift-nn":

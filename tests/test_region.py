@@ -1,4 +1,4 @@
-"""Region cue (pixie.region): colour-posterior separation, and region-based refinement from perturbed poses on
+"""Region cue (pixie.cues.region): colour-posterior separation, and region-based refinement from perturbed poses on
 rendered photos of an asymmetric part (random colours, cluttered background) and on a real LM-O photo."""
 
 from __future__ import annotations
@@ -7,9 +7,9 @@ import cv2
 import numpy as np
 import pytest
 
-from pixie.camera import make_K, make_T
-from pixie.region import band, colour_index, polygon_scores, refine_pose, separation
-from pixie.render import Renderer
+from pixie.geometry.camera import make_K, make_T
+from pixie.cues.region import band, colour_index, polygon_scores, refine_pose, separation
+from pixie.geometry.render import Renderer
 
 K = make_K(600.0, 600.0, 159.5, 119.5)
 H, W = 240, 320
@@ -73,9 +73,9 @@ def test_region_refinement_converges_from_15_degrees_and_10_percent_depth(proc_m
 
 def test_region_refinement_on_a_real_lmo_photo(lmo_dataset):
     """On LM-O the refined pose is finite, stays near the start, and does not lower the region score."""
-    from pixie.mesh import load_mesh
-    from pixie.region import colour_index as ci
-    from pixie.region import separation as sep
+    from pixie.geometry.mesh import load_mesh
+    from pixie.cues.region import colour_index as ci
+    from pixie.cues.region import separation as sep
 
     t = next(t for t in lmo_dataset.targets() if t.obj_id == 5)
     g = max((g for g in lmo_dataset.instances(t.scene_id, t.im_id) if g.obj_id == 5), key=lambda g: g.visib_fract)

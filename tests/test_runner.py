@@ -1,4 +1,4 @@
-"""pixie.runner: the shared reference cache and the resumable loop, on a tiny synthetic BOP dataset."""
+"""pixie.app.runner: the shared reference cache and the resumable loop, on a tiny synthetic BOP dataset."""
 
 from __future__ import annotations
 
@@ -9,8 +9,8 @@ import pytest
 
 from pixie.config import PixieConfig
 from pixie.eval.datasets import read_results_csv
-from pixie.mesh import load_mesh
-from pixie.runner import Journal, cached_reference_set, reference_cache_path, run_dataset
+from pixie.geometry.mesh import load_mesh
+from pixie.app.runner import Journal, cached_reference_set, reference_cache_path, run_dataset
 
 pytestmark = pytest.mark.usefixtures("one_torch_thread")
 

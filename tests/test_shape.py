@@ -1,15 +1,15 @@
-"""pixie.shape: template placements as photo poses, verification, and the estimator's shape stage on LM-O."""
+"""pixie.cues.shape: template placements as photo poses, verification, and the estimator's shape stage on LM-O."""
 
 from __future__ import annotations
 
 import numpy as np
 import pytest
 
-from pixie.camera import make_K, rotation_angle_deg
-from pixie.contours import build_templates
-from pixie.query import bbox_from_mask, check_bbox
-from pixie.render import Renderer
-from pixie.shape import ShapeCues, ray_rotation
+from pixie.geometry.camera import make_K, rotation_angle_deg
+from pixie.references.templates import build_templates
+from pixie.pipeline.query import bbox_from_mask, check_bbox
+from pixie.geometry.render import Renderer
+from pixie.cues.shape import ShapeCues, ray_rotation
 
 K = make_K(600.0, 600.0, 319.5, 239.5)
 H, W = 480, 640
@@ -60,7 +60,7 @@ def test_estimator_shape_stage_on_a_real_lmo_photo(lmo_dataset, lmo_meshes, matc
     """With ``shape.enabled`` the estimator returns a finite, not failed pose whose hypotheses carry verification
     terms, and edge-template hypotheses take part."""
     from pixie.config import PixieConfig, RefsConfig
-    from pixie.estimator import PoseEstimator
+    from pixie.pipeline.estimator import PoseEstimator
     from pixie.matching import matcher_from_config
 
     cfg = PixieConfig()

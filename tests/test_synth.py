@@ -9,12 +9,12 @@ import pytest
 
 pytest.importorskip("manifold3d")
 
-from pixie.eval import shape as metrics  # noqa: E402
-from pixie.camera import look_at, make_K  # noqa: E402
+from pixie.eval import shape_metrics as metrics  # noqa: E402
+from pixie.geometry.camera import look_at, make_K  # noqa: E402
 from pixie.eval.datasets import BopDataset  # noqa: E402
-from pixie.mesh import from_arrays, load_mesh  # noqa: E402
-from pixie.query import bbox_from_mask  # noqa: E402
-from pixie.render import Renderer  # noqa: E402
+from pixie.geometry.mesh import from_arrays, load_mesh  # noqa: E402
+from pixie.pipeline.query import bbox_from_mask  # noqa: E402
+from pixie.geometry.render import Renderer  # noqa: E402
 from pixie.synth.assemblies import BRICK_H, STUD_PITCH, brick_part, lego_assembly, make_target_assembly  # noqa: E402
 from pixie.synth.defects import DEFECT_TYPES, apply_defect, make_defects, missing_part, shifted_part  # noqa: E402
 from pixie.synth.photo import (  # noqa: E402

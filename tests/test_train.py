@@ -42,7 +42,7 @@ def test_gt_correspondences_reproject():
     # valid correspondences land on reference pixels showing the same surface point
     r_uv, valid = p.correspond(kp)
     assert valid.mean() > 0.3
-    from pixie.camera import backproject, invert_T
+    from pixie.geometry.camera import backproject, invert_T
 
     ri = np.rint(r_uv[valid]).astype(int)
     z = p.ref_depth[ri[:, 1], ri[:, 0]].astype(np.float64)

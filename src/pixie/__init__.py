@@ -6,7 +6,7 @@ The public API is these few names (everything else is importable from its module
 
     result = pixie.estimate_pose("part.stl", "photo.png", K="600,600,320,240", bbox=(x, y, w, h))   # one call
 
-    from pixie.runner import make_matcher                    # or step by step:
+    from pixie.app.runner import make_matcher                    # or step by step:
 
     mesh = pixie.load_mesh("part.ply")                       # units auto-detected (mm unless under 2 units across)
     cfg = pixie.PixieConfig.from_preset("default")
@@ -15,32 +15,45 @@ The public API is these few names (everything else is importable from its module
     result = est.estimate(pixie.load_image("photo.png"), K, bbox=(x, y, w, h))
     result.T_cam_from_obj, result.failed                       # every error is a pixie.PixieError
 
-The pipeline follows the data flow, one module per stage (ARCHITECTURE.md)::
+The packages follow the data flow (ARCHITECTURE.md)::
 
-    geometry (mesh, camera, render, views, encode) -> references -> matching -> pose -> refine -> estimator
-    eval beside; runner, cli, demo on top
+    geometry (rotations, camera, mesh, render) -> references (views, encode, templates, set) -> matching
+    -> pose (solve, plausibility, results) -> cues (edges, region, refine, shape) -> pipeline (query, estimator)
+    eval, synth, train beside; viz; app (cluster, runner, batch, api, demo, cli) on top
 
 Conventions (everywhere): OpenCV camera (x right, y down, z forward), millimetres,
 ``T_cam_from_obj`` 4x4 rigid transforms mapping object points to camera points, intrinsics ``K`` 3x3.
 """
 
-from pixie._version import __version__
-from pixie.api import estimate_pose
-from pixie.config import PixieConfig
-from pixie.errors import PixieError
-from pixie.estimator import PoseEstimator
-from pixie.mesh import load_mesh
-from pixie.query import load_image
-from pixie.references import build_reference_set, load_reference_set
+from __future__ import annotations
 
-__all__ = [
-    "__version__",
-    "estimate_pose",
-    "PixieConfig",
-    "PixieError",
-    "PoseEstimator",
-    "build_reference_set",
-    "load_image",
-    "load_mesh",
-    "load_reference_set",
-]
+from importlib import import_module
+
+from pixie._version import __version__
+
+# The facade loads its modules on first use (PEP 562): ``import pixie.threads`` (the ``pixie`` command's first
+# step) then runs before numpy and torch are imported and can still set their thread environment.
+_EXPORTS = {
+    "estimate_pose": "pixie.app.api",
+    "PixieConfig": "pixie.config",
+    "PixieError": "pixie.errors",
+    "PoseEstimator": "pixie.pipeline.estimator",
+    "load_mesh": "pixie.geometry.mesh",
+    "load_image": "pixie.pipeline.query",
+    "build_reference_set": "pixie.references.set",
+    "load_reference_set": "pixie.references.set",
+}
+
+__all__ = ["__version__", *_EXPORTS]
+
+
+def __getattr__(name: str):
+    if name in _EXPORTS:
+        value = getattr(import_module(_EXPORTS[name]), name)
+        globals()[name] = value
+        return value
+    raise AttributeError(f"module 'pixie' has no attribute {name!r}")
+
+
+def __dir__() -> list[str]:
+    return sorted(set(globals()) | set(__all__))

@@ -203,7 +203,7 @@ class RefineConfig(_Section):
     view_selection_iters: int = 1
     recrop: bool = True  # view selection re-crops the query around the best pose's projected (amodal) box, like the references
     n_hypotheses: int = 5
-    # Render-at-estimate refinement (pixie.refine): render the object at a hypothesis inside the query crop,
+    # Render-at-estimate refinement (pixie.cues.refine): render the object at a hypothesis inside the query crop,
     # match the crop against that aligned render, re-solve PnP; repeated render_iters times for each of the
     # render_hypotheses best distinct hypotheses. 0 iterations = the paper's pipeline;
     # on LM-O (48 targets) 2 iterations x 6 hypotheses doubled ADD(-S)<0.1d (bench/RESULTS.md).
@@ -246,7 +246,7 @@ _SECTION_NAMES = {RefsConfig: "refs", QueryConfig: "query", MatchConfig: "match"
 
 @dataclass
 class ShapeConfig:
-    """Shape cues beside the matcher (pixie.shape): contour templates, edge + region verification, region refinement.
+    """Shape cues beside the matcher (pixie.cues.shape): contour templates, edge + region verification, region refinement.
 
     Measured on LM-O dev (bench/RESULTS.md, "Shape cues"): fusing them with the matcher raised ADD(-S)<0.1d on 96
     targets from 17 (the matcher's own choice in the same run) to 28. ``enabled=false`` is the pipeline without them.
@@ -270,7 +270,7 @@ class ShapeConfig:
     w_edge: float = 0.5
     w_region: float = 4.0
     before_render: bool = False  # verify before render-at-estimate refinement (which then refines the best fused)
-    refine_hypotheses: int = 0  # best verified hypotheses refined by region-based refinement (pixie.region); 0: off
+    refine_hypotheses: int = 0  # best verified hypotheses refined by region-based refinement (pixie.cues.region); 0: off
     refine_box_px: float = 96.0  # refinement crop: the box's longer side in px
 
 

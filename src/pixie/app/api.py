@@ -9,14 +9,14 @@ from typing import Any, Sequence
 
 import numpy as np
 
-from pixie.camera import make_K, parse_K
+from pixie.geometry.camera import make_K, parse_K
 from pixie.config import DEFAULT_PRESET, PixieConfig
 from pixie.errors import ImageError
-from pixie.estimator import PoseEstimator
-from pixie.mesh import Mesh, load_mesh
-from pixie.query import load_image
-from pixie.references import ReferenceSet, load_reference_set
-from pixie.runner import cached_reference_set
+from pixie.pipeline.estimator import PoseEstimator
+from pixie.geometry.mesh import Mesh, load_mesh
+from pixie.pipeline.query import load_image
+from pixie.references.set import ReferenceSet, load_reference_set
+from pixie.app.runner import cached_reference_set
 from pixie.weights import cache_dir
 
 __all__ = ["estimate_pose", "as_K"]
@@ -73,7 +73,7 @@ def estimate_pose(mesh_or_refs: Any, image: Any, K: Any, bbox: Sequence[float] |
     mesh_or_refs
         A CAD file (PLY/OBJ/STL/OFF/GLB; its reference set is built with the preset on first use and cached
         in ``cache_dir``, default ``~/.cache/pixie/refs``), a reference-set file from ``pixie refs build``, a
-        :class:`~pixie.mesh.Mesh` or a :class:`~pixie.references.ReferenceSet`.
+        :class:`~pixie.geometry.mesh.Mesh` or a :class:`~pixie.references.set.ReferenceSet`.
     image
         A file path, or an RGB ``uint8`` array (H, W, 3).
     K
@@ -90,7 +90,7 @@ def estimate_pose(mesh_or_refs: Any, image: Any, K: Any, bbox: Sequence[float] |
 
     Returns
     -------
-    pixie.estimator.PoseResult
+    pixie.pipeline.estimator.PoseResult
         ``T_cam_from_obj`` (mm, OpenCV camera), ``failed``, ``confidence``, ``hypotheses``, ``timings``;
         ``to_dict()`` for JSON.
 

@@ -35,16 +35,16 @@ from typing import Any, Callable
 
 import numpy as np
 
-from pixie.camera import make_K
-from pixie.cluster import WorkerSpec, ray_map, serial_map
+from pixie.geometry.camera import make_K
+from pixie.app.cluster import WorkerSpec, ray_map, serial_map
 from pixie.config import PixieConfig
 from pixie.errors import ConfigError, ImageError, PixieError
-from pixie.estimator import PoseEstimator
+from pixie.pipeline.estimator import PoseEstimator
 from pixie.eval.datasets import PoseEstimate, write_results_csv
 from pixie.paths import write_atomic
-from pixie.query import bbox_from_mask, check_bbox, load_image
-from pixie.references import load_reference_set
-from pixie.render import Renderer
+from pixie.pipeline.query import bbox_from_mask, check_bbox, load_image
+from pixie.references.set import load_reference_set
+from pixie.geometry.render import Renderer
 from pixie.viz import encode_png, overlay_result
 from pixie.weights import sha256_file
 

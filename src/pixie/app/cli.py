@@ -23,22 +23,22 @@ from pathlib import Path
 import numpy as np
 
 from pixie._version import __version__
-from pixie.batch import folder_items, read_manifest, run_batch
-from pixie.camera import check_image_K, parse_K
-from pixie.cluster import set_threads
+from pixie.app.batch import folder_items, read_manifest, run_batch
+from pixie.geometry.camera import check_image_K, parse_K
+from pixie.app.cluster import set_threads
 from pixie.config import DEFAULT_PRESET, PixieConfig, preset_about, preset_names
-from pixie.demo import main as demo_main
-from pixie.encode import check_encodings
+from pixie.app.demo import main as demo_main
+from pixie.references.encode import check_encodings
 from pixie.errors import DatasetError, PixieError, ReferenceSetError, UsageError
-from pixie.estimator import PoseEstimator
+from pixie.pipeline.estimator import PoseEstimator
 from pixie.eval import BopDataset, add_eval_arguments, main_eval, run_eval
 from pixie.matching import available_matchers, backend_weights
-from pixie.mesh import load_mesh, units_note
+from pixie.geometry.mesh import load_mesh, units_note
 from pixie.paths import not_an_input, output_dir, output_file, write_atomic
-from pixie.query import bbox_from_mask, check_bbox, check_query_mask, load_image
-from pixie.references import build_reference_set, check_output_path, load_reference_set, save_reference_set
-from pixie.render import Renderer
-from pixie.runner import cached_reference_set, make_matcher, reference_cache_path, run_dataset
+from pixie.pipeline.query import bbox_from_mask, check_bbox, check_query_mask, load_image
+from pixie.references.set import build_reference_set, check_output_path, load_reference_set, save_reference_set
+from pixie.geometry.render import Renderer
+from pixie.app.runner import cached_reference_set, make_matcher, reference_cache_path, run_dataset
 from pixie.viz import contact_sheet, overlay_result, save_png
 from pixie.weights import cache_dir, sha256_file, weights_status
 

@@ -19,20 +19,20 @@ from pathlib import Path
 import cv2
 import numpy as np
 
-from pixie.camera import look_at, make_K, rotation_angle_deg
+from pixie.geometry.camera import look_at, make_K, rotation_angle_deg
 from pixie.config import PixieConfig
-from pixie.encode import shade
-from pixie.estimator import PoseEstimator
+from pixie.references.encode import shade
+from pixie.pipeline.estimator import PoseEstimator
 from pixie.eval.datasets import BopDataset
-from pixie.eval.errors import add
-from pixie.mesh import Mesh, from_arrays, load_mesh
-from pixie.query import bbox_from_mask
-from pixie.render import Renderer
-from pixie.runner import cached_reference_set
+from pixie.eval.pose_error import add
+from pixie.geometry.mesh import Mesh, from_arrays, load_mesh
+from pixie.pipeline.query import bbox_from_mask
+from pixie.geometry.render import Renderer
+from pixie.app.runner import cached_reference_set
 from pixie.viz import contact_sheet, overlay_pose, save_png
 from pixie.weights import repo_root, shared_root
 
-REPO = Path(__file__).resolve().parents[2]
+REPO = Path(__file__).resolve().parents[3]
 
 
 def lmo_dir() -> Path | None:

@@ -25,15 +25,15 @@ from typing import Callable, Hashable
 import numpy as np
 
 from pixie._version import __version__
-from pixie.cluster import WorkerSpec, ray_map, set_threads
+from pixie.app.cluster import WorkerSpec, ray_map, set_threads
 from pixie.config import PixieConfig
 from pixie.errors import DatasetError, PixieError, ReferenceSetError
-from pixie.estimator import PoseEstimator
+from pixie.pipeline.estimator import PoseEstimator
 from pixie.eval.datasets import BopDataset, PoseEstimate, Target, write_results_csv
 from pixie.matching import Matcher, matcher_from_config
-from pixie.mesh import Mesh, load_mesh
+from pixie.geometry.mesh import Mesh, load_mesh
 from pixie.paths import output_dir, write_atomic
-from pixie.references import ReferenceSet, build_reference_set, load_reference_set, save_reference_set
+from pixie.references.set import ReferenceSet, build_reference_set, load_reference_set, save_reference_set
 
 log = logging.getLogger(__name__)
 
@@ -162,7 +162,7 @@ def run_dataset(dataset_root: str | Path, out_dir: str | Path, config: PixieConf
     run resumes where it stopped. Returns the path of the BOP CSV.
 
     ``threads`` fixes torch/OpenCV threads for the run (``None``: leave them as they are). With ``use_ray`` the
-    reference sets are built here first (once, into ``refs_dir``) and Ray workers (:func:`pixie.cluster.ray_map`,
+    reference sets are built here first (once, into ``refs_dir``) and Ray workers (:func:`pixie.app.cluster.ray_map`,
     ``threads`` each, default 1) load them from there; the results equal a serial run's at the same ``threads``.
     """
     cfg = config or PixieConfig()
@@ -293,7 +293,7 @@ def _run_target(ds: BopDataset, est, t: Target) -> dict:
 @functools.lru_cache(maxsize=1)
 def code_version() -> str:
     """pixie's version plus a hash of its source files: any code change makes earlier results stale."""
-    root = Path(__file__).resolve().parent
+    root = Path(__file__).resolve().parents[1]  # the pixie package
     h = hashlib.sha256(__version__.encode())
     for p in sorted(root.rglob("*.py")):
         h.update(str(p.relative_to(root)).encode() + b"\0" + p.read_bytes())

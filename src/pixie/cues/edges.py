@@ -4,11 +4,11 @@ The query crop's colour gradients (the RGB channel of largest magnitude per pixe
 Hinterstoisser et al.) are quantised to 8 unsigned orientations, spread over a small neighbourhood and turned
 into 8 response maps: ``resp[o][y, x]`` is how well an edge of orientation ``o`` placed at (x, y) agrees with
 the photo (|cos| of the smallest orientation difference present nearby). A template (a view's contour points,
-rolled; :mod:`pixie.contours`) placed in the crop scores the weighted mean response over its points; each
+rolled; :mod:`pixie.references.templates`) placed in the crop scores the weighted mean response over its points; each
 point's score is bounded, so clutter and occlusion cost a template only the points they touch.
 
 Placement: the template's rolled silhouette box is scaled and centred onto the query box (the larger of the
-width and height ratios, like :func:`pixie.pose.depth_from_box`), then a small grid of shifts and scales is
+width and height ratios, like :func:`pixie.pose.solve.depth_from_box`), then a small grid of shifts and scales is
 searched.
 """
 
@@ -19,8 +19,8 @@ from dataclasses import dataclass
 import cv2
 import numpy as np
 
-from pixie.contours import CREASE, ContourTemplates
-from pixie.query import QueryCrop, square_crop
+from pixie.references.templates import CREASE, ContourTemplates
+from pixie.pipeline.query import QueryCrop, square_crop
 
 N_BINS = 8
 

@@ -8,7 +8,7 @@ right, in the photo's own perspective. Matching the query against that render is
 (the reference at the true view) as soon as the hypothesis is close; PnP on its matches gives the next
 hypothesis.
 
-Functions here are pure: the estimator owns the loop (:meth:`pixie.estimator.PoseEstimator.render_refine`).
+Functions here are pure: the estimator owns the loop (:meth:`pixie.pipeline.estimator.PoseEstimator.render_refine`).
 """
 
 from __future__ import annotations
@@ -17,12 +17,12 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from pixie.encode import encode
+from pixie.references.encode import encode
 from pixie.errors import CameraError
-from pixie.geometry import lookup
-from pixie.pose import lift
-from pixie.query import QueryCrop
-from pixie.render import Renderer
+from pixie.geometry.rotations import lookup
+from pixie.pose.solve import lift
+from pixie.pipeline.query import QueryCrop
+from pixie.geometry.render import Renderer
 
 
 @dataclass
@@ -81,7 +81,7 @@ def aligned_correspondences(matcher, query_feats, crop: QueryCrop,
     """2D (photo px) – 3D (object mm) correspondences and similarities, query crop vs. its aligned render.
 
     All encodings of ``aligned`` are matched and concatenated; render keypoints off the object are dropped
-    (:func:`pixie.pose.lift`).
+    (:func:`pixie.pose.solve.lift`).
     """
     p2s, p3s, scs = [], [], []
     for img in aligned.images.values():

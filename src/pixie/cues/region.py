@@ -19,8 +19,8 @@ from dataclasses import dataclass
 import cv2
 import numpy as np
 
-from pixie.camera import invert_T, make_T, transform_points
-from pixie.render import Renderer
+from pixie.geometry.camera import invert_T, make_T, transform_points
+from pixie.geometry.render import Renderer
 
 
 def colour_index(image: np.ndarray, bits: int = 3) -> np.ndarray:

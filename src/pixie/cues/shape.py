@@ -1,7 +1,7 @@
 """Shape cues for one object: edge-template retrieval, edge + region verification of poses, region refinement.
 
-:class:`ShapeCues` ties :mod:`pixie.contours` (templates from geometry), :mod:`pixie.edges` (gradient
-orientation scoring) and :mod:`pixie.region` (colour-region agreement and refinement) to photo poses:
+:class:`ShapeCues` ties :mod:`pixie.references.templates` (templates from geometry), :mod:`pixie.cues.edges` (gradient
+orientation scoring) and :mod:`pixie.cues.region` (colour-region agreement and refinement) to photo poses:
 
 >>> cues = ShapeCues(mesh, build_templates(mesh))
 >>> q = cues.query(image, box_xyxy)                    # response maps of the box's crop
@@ -21,13 +21,13 @@ from dataclasses import dataclass
 import cv2
 import numpy as np
 
-from pixie.camera import make_T
-from pixie.contours import ContourTemplates, build_templates, distinct_by_rotation, view_points
-from pixie.edges import EdgeQuery, orientation_bins, prepare_query, search, template_bank
-from pixie.mesh import Mesh
-from pixie.query import square_crop
-from pixie.region import band, colour_index, polygon_scores, refine_pose, separation
-from pixie.render import Renderer
+from pixie.geometry.camera import make_T
+from pixie.references.templates import ContourTemplates, build_templates, distinct_by_rotation, view_points
+from pixie.cues.edges import EdgeQuery, orientation_bins, prepare_query, search, template_bank
+from pixie.geometry.mesh import Mesh
+from pixie.pipeline.query import square_crop
+from pixie.cues.region import band, colour_index, polygon_scores, refine_pose, separation
+from pixie.geometry.render import Renderer
 
 
 @dataclass
@@ -73,7 +73,7 @@ class ShapeCues:
     templates : ContourTemplates
     n_rolls : in-plane angles of the coarse search (36: every 10°)
     crease_weight : weight of crease points against silhouette points
-    query_kw : keywords of :func:`pixie.edges.prepare_query` (box_px, pad, min_mag, spread, power)
+    query_kw : keywords of :func:`pixie.cues.edges.prepare_query` (box_px, pad, min_mag, spread, power)
     region_k : best (view, roll) pairs by edges that get a region score before ranking
     region_weight : fused score = edge + region_weight * (region - 0.5)
     band : region band width, fraction of the query box's longer side
@@ -186,7 +186,7 @@ class ShapeCues:
                pad: float = 1.6, **kw):
         """Region-based refinement of ``T`` in a crop around ``box_xyxy`` (longer side ``box_px`` px).
 
-        Returns the :class:`pixie.region.RegionRefineResult` with the pose in the photo's camera.
+        Returns the :class:`pixie.cues.region.RegionRefineResult` with the pose in the photo's camera.
         """
         size = int(round(box_px * pad))
         crop = square_crop(image, box_xyxy, pad, size)

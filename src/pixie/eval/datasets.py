@@ -36,7 +36,7 @@ import cv2
 import numpy as np
 
 from pixie.errors import DatasetError
-from pixie.geometry import rodrigues
+from pixie.geometry.rotations import rodrigues
 from pixie.paths import write_atomic
 
 RESULTS_HEADER = "scene_id,im_id,obj_id,score,R,t,time"
@@ -102,7 +102,7 @@ def box_from_bop(bbox) -> np.ndarray | None:
     """A BOP ``[x, y, w, h]`` box in pixie's convention: ``w``, ``h`` count pixels.
 
     BOP (``bop_toolkit`` ``calc_2d_bbox``) stores ``w = x_last - x_first`` for a mask spanning columns
-    ``x_first..x_last``; pixie boxes (like OpenCV's ``boundingRect``, COCO and :func:`pixie.query.bbox_from_mask`)
+    ``x_first..x_last``; pixie boxes (like OpenCV's ``boundingRect``, COCO and :func:`pixie.pipeline.query.bbox_from_mask`)
     have ``w = x_last - x_first + 1``, the extent a projected object covers. The pixel matters: depth from the
     box size is ~1 % off on an 80 px object without it. BOP's box of an invisible object, ``[-1, -1, -1, -1]``
     (any negative ``w`` or ``h``), stays as it is: an empty box, which the estimator rejects by name.

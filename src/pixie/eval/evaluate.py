@@ -1,5 +1,5 @@
 """Evaluation of pose estimates on a BOP dataset (bop_toolkit's ``calc_errors`` + ``calc_scores`` orchestration):
-per-target errors (:mod:`pixie.eval.errors`), BOP'19 AR, ADD family, APS (:mod:`pixie.eval.scores`).
+per-target errors (:mod:`pixie.eval.pose_error`), BOP'19 AR, ADD family, APS (:mod:`pixie.eval.scores`).
 
 Protocol (BOP'19, localisation with known instance counts):
 
@@ -27,7 +27,7 @@ from pathlib import Path
 
 import numpy as np
 
-from pixie.eval import errors as M
+from pixie.eval import pose_error as M
 from pixie.eval.datasets import BopDataset, GtInstance, PoseEstimate, read_results_csv
 from pixie.eval.objects import ObjectData, load_object_data
 from pixie.eval.scores import (
@@ -43,8 +43,8 @@ from pixie.eval.scores import (
     normalize_metrics,
     valid_gt_mask,
 )
-from pixie.eval.shape import aps
-from pixie.geometry import orthonormalize
+from pixie.eval.shape_metrics import aps
+from pixie.geometry.rotations import orthonormalize
 
 
 def _group_estimates(results: Sequence[PoseEstimate]) -> dict[tuple[int, int, int], list[PoseEstimate]]:

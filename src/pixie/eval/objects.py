@@ -8,10 +8,10 @@ from dataclasses import dataclass
 import numpy as np
 from scipy.spatial import cKDTree
 
-from pixie.eval import errors as M
+from pixie.eval import pose_error as M
 from pixie.eval.datasets import BopDataset, is_symmetric, symmetry_transforms
-from pixie.mesh import load_mesh
-from pixie.render import Renderer
+from pixie.geometry.mesh import load_mesh
+from pixie.geometry.render import Renderer
 
 
 @dataclass

@@ -1,6 +1,6 @@
 """Pose errors as pure functions: ADD, ADD-S, ADD(-S), BOP'19 MSSD / MSPD / VSD, rotation and translation error.
 
-Recall and AR are in :mod:`pixie.eval.scores`, the shape metrics (APS, IoU3D) in :mod:`pixie.eval.shape`.
+Recall and AR are in :mod:`pixie.eval.scores`, the shape metrics (APS, IoU3D) in :mod:`pixie.eval.shape_metrics`.
 
 Conventions: poses are 4x4 ``T_cam_from_obj`` (mm), points are (N, 3) object-frame mm,
 ``K`` is 3x3 (OpenCV). Symmetry sets are (S, 4, 4) arrays from
@@ -20,8 +20,8 @@ from typing import Sequence
 
 import numpy as np
 
-from pixie.camera import project, rotation_angle_deg, transform_points
-from pixie.geometry import orthonormalize
+from pixie.geometry.camera import project, rotation_angle_deg, transform_points
+from pixie.geometry.rotations import orthonormalize
 
 # BOP'19 threshold sets.
 MSSD_THRESHOLDS = np.arange(0.05, 0.51, 0.05)  # fraction of the diameter
@@ -251,7 +251,7 @@ def vsd_poses(
     taus: Sequence[float] = VSD_TAUS,
     depth_gt: np.ndarray | None = None,
 ) -> np.ndarray:
-    """VSD of a pose pair: renders the model with ``renderer`` (a :class:`pixie.render.Renderer`)
+    """VSD of a pose pair: renders the model with ``renderer`` (a :class:`pixie.geometry.render.Renderer`)
     at both poses (``depth_gt`` may be passed in when already rendered) and calls :func:`vsd`."""
     h, w = depth_test.shape
     radius = 0.5 * diameter

@@ -19,7 +19,7 @@ from pixie.eval.datasets import BopDataset
 from pixie.eval.objects import ObjectData, load_object_data
 from pixie.eval.scores import Scores, TargetResult
 from pixie.eval.writers import format_table
-from pixie.geometry import orthonormalize
+from pixie.geometry.rotations import orthonormalize
 from pixie.paths import write_atomic
 from pixie.viz import EST_COLOR, GT_COLOR, draw_contours
 

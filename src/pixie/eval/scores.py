@@ -11,8 +11,8 @@ import numpy as np
 
 from pixie.errors import ConfigError
 from pixie.eval.datasets import GtInstance
-from pixie.eval import errors as M
-from pixie.eval.errors import MSPD_THRESHOLDS
+from pixie.eval import pose_error as M
+from pixie.eval.pose_error import MSPD_THRESHOLDS
 
 ALL_METRICS = ("mssd", "mspd", "vsd", "add", "adds", "ad", "aps")
 DEFAULT_METRICS = ("mssd", "mspd", "vsd", "add", "adds", "ad")

@@ -8,8 +8,8 @@ from typing import Sequence
 
 import numpy as np
 
-from pixie.camera import transform_points
-from pixie.geometry import orthonormalize
+from pixie.geometry.camera import transform_points
+from pixie.geometry.rotations import orthonormalize
 
 
 # --------------------------------------------------------------------------------------------
@@ -59,7 +59,7 @@ def aps(
     """Alignment-Precision Score (paper Eq. 1), in [0, 1].
 
     Renders the target model at the estimate and the defective (actually observed) model
-    at the GT pose with :class:`pixie.render.Renderer` objects, then applies
+    at the GT pose with :class:`pixie.geometry.render.Renderer` objects, then applies
     :func:`aps_from_depth`. Rotations are snapped to the nearest exact rotation first.
     """
     dt = renderer_target.render(orthonormalize(T_est), K, h, w).depth
@@ -176,7 +176,7 @@ def iou3d(mesh_a, mesh_b, voxel_size: float, T_a: np.ndarray | None = None, T_b:
 
     Parameters
     ----------
-    mesh_a, mesh_b : objects with ``vertices`` (mm) and ``faces`` (e.g. :class:`pixie.mesh.Mesh`)
+    mesh_a, mesh_b : objects with ``vertices`` (mm) and ``faces`` (e.g. :class:`pixie.geometry.mesh.Mesh`)
     voxel_size : float, mm
     T_a, T_b : (4, 4), optional
         Poses placing each mesh in the common frame (identity when omitted).

@@ -12,9 +12,9 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from pixie.camera import invert_T, validate_K, validate_pose
+from pixie.geometry.camera import invert_T, validate_K, validate_pose
 from pixie.errors import CameraError
-from pixie.mesh import Mesh, face_normals
+from pixie.geometry.mesh import Mesh, face_normals
 
 
 @dataclass

@@ -24,7 +24,7 @@ Every weight file is found by :func:`pixie.weights.resolve_weights`; nothing is 
 ``allow_download`` is true (the default of :func:`get_matcher`, a user-facing loader).
 
 Conventions: keypoints are ``(x, y)`` pixels with integer values at pixel centres (OpenCV and kornia);
-images are checked by :func:`pixie.geometry.check_image`; masks are boolean ``HxW``.
+images are checked by :func:`pixie.geometry.rotations.check_image`; masks are boolean ``HxW``.
 
 Modules (imports go down this list): ``checkpoints`` (weight files, key remapping) -> ``base`` (extractor base
 class, keypoint selection, reference banks) -> one module per extractor family (``aliked``, ``disk``,

@@ -17,7 +17,7 @@ from torch import nn
 
 from pixie.errors import WeightsError
 from pixie.features import Features
-from pixie.geometry import check_image, check_mask, in_mask
+from pixie.geometry.rotations import check_image, check_mask, in_mask
 from pixie.matching.aliked import AlikedExtractor
 
 DEFAULT_ADAPTER = "aliked_n16_geoadapter"

@@ -17,7 +17,7 @@ import torch.nn.functional as F
 from torch import nn
 
 from pixie.features import Features
-from pixie.geometry import check_image, check_mask, in_mask
+from pixie.geometry.rotations import check_image, check_mask, in_mask
 from pixie.matching.checkpoints import WeightsArg, load_strict, load_weights
 
 _FAR = 1.0e6  # keypoint coordinate of padding entries: outside every window

@@ -32,13 +32,13 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from pixie.camera import check_image_K, intrinsics_warnings, optical_axis_in_object, rotation_angle_deg
+from pixie.geometry.camera import check_image_K, intrinsics_warnings, optical_axis_in_object, rotation_angle_deg
 from pixie.config import PixieConfig
 from pixie.errors import ConfigError, ImageError
 from pixie.features import Features
-from pixie.geometry import check_image
+from pixie.geometry.rotations import check_image
 from pixie.matching import Matcher, matcher_from_config
-from pixie.pose import (
+from pixie.pose.solve import (
     PnPResult,
     background_similarity,
     box_iou,
@@ -49,15 +49,15 @@ from pixie.pose import (
     projected_box,
     solve_pnp_ransac,
 )
-from pixie.plausibility import pose_contradictions
-from pixie.query import QueryCrop, bbox_from_mask, check_bbox, check_query_mask, square_crop
-from pixie.references import ReferenceSet, add_features
-from pixie.refine import aligned_correspondences, render_in_crop
-from pixie.render import Renderer
-from pixie.edges import EdgeQuery
-from pixie.shape import fused_score, shape_cues
-from pixie.results import NO_BOX_MESSAGE, Hypothesis, PoseResult, set_confidences
-from pixie.views import roll_angles
+from pixie.pose.plausibility import pose_contradictions
+from pixie.pipeline.query import QueryCrop, bbox_from_mask, check_bbox, check_query_mask, square_crop
+from pixie.references.set import ReferenceSet, add_features
+from pixie.cues.refine import aligned_correspondences, render_in_crop
+from pixie.geometry.render import Renderer
+from pixie.cues.edges import EdgeQuery
+from pixie.cues.shape import fused_score, shape_cues
+from pixie.pose.results import NO_BOX_MESSAGE, Hypothesis, PoseResult, set_confidences
+from pixie.references.views import roll_angles
 
 log = logging.getLogger(__name__)
 
@@ -79,7 +79,7 @@ class Query:
     mask : (H, W) bool or None, the object mask used to keep query keypoints (``query.mask_keypoints``)
     crops : the square crops (one, or one per roll for ``match.in_plane=query``; ``crops[0]`` is unrotated)
     features : the query features of each crop
-    background : the query's background match similarity (:func:`pixie.pose.background_similarity`),
+    background : the query's background match similarity (:func:`pixie.pose.solve.background_similarity`),
         set after :meth:`PoseEstimator.match`; 0 until then
     """
 
@@ -391,7 +391,7 @@ class PoseEstimator:
         return sorted(hyps + new, key=lambda h: -h.score)
 
     def render_refine(self, q: Query, hyps: list[Hypothesis]) -> list[Hypothesis]:
-        """Render-at-estimate refinement (:mod:`pixie.refine`) of the best distinct hypotheses.
+        """Render-at-estimate refinement (:mod:`pixie.cues.refine`) of the best distinct hypotheses.
 
         Uses the query's unrotated first crop and its features. Refined hypotheses keep the view/roll of the
         hypothesis they started from; their rotation-consistency term compares with the rendered pose.
@@ -486,7 +486,7 @@ class PoseEstimator:
                q: Query | None = None) -> PoseResult:
         """The best hypothesis as a :class:`PoseResult` with its confidence and the distinct runners-up.
 
-        With the query ``q``, a pose that contradicts its box or K (:func:`pixie.plausibility.pose_contradictions`:
+        With the query ``q``, a pose that contradicts its box or K (:func:`pixie.pose.plausibility.pose_contradictions`:
         behind the camera, far too small or large for the box, beside it) is flagged failed with the reason,
         and intrinsics unusual for the image size are listed in ``warnings``.
         """

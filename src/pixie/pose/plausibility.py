@@ -9,7 +9,7 @@ from __future__ import annotations
 
 import numpy as np
 
-from pixie.camera import project, transform_points
+from pixie.geometry.camera import project, transform_points
 
 # The object's projection may exceed the box of its visible part (occlusion) up to this factor along its
 # longer side, and may be at most this much smaller than it.

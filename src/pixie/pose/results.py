@@ -46,9 +46,9 @@ class Hypothesis:
     confidence: float = 0.0  # set for returned hypotheses: score / (score + the best other distinct score)
     # shape cues (config.shape): source may also be 'edges' (contour template) or 'region' (region-refined)
     match_score: float = 0.0  # the matcher's score before shape verification replaced ``score``
-    edge: float = float("nan")  # edge agreement (pixie.shape), when verified
+    edge: float = float("nan")  # edge agreement (pixie.cues.shape), when verified
     region: float = float("nan")  # region agreement, when verified
-    terms: dict = field(default_factory=dict)  # every verification term (pixie.shape.ShapeCues.verify_terms)
+    terms: dict = field(default_factory=dict)  # every verification term (pixie.cues.shape.ShapeCues.verify_terms)
     matcher_best: bool = False  # the matcher's own choice (what the pipeline returns without shape cues)
 
 

@@ -1,7 +1,7 @@
 """From matches to scored poses: the one lift (2D–2D matches -> 2D–3D), PnP + RANSAC (PoseLib or OpenCV),
 hypothesis scoring and the distance from the box.
 
-Pure functions; the estimator (:mod:`pixie.estimator`) chains them.
+Pure functions; the estimator (:mod:`pixie.pipeline.estimator`) chains them.
 """
 
 from __future__ import annotations
@@ -11,7 +11,7 @@ from dataclasses import dataclass
 import cv2
 import numpy as np
 
-from pixie.camera import make_T, project, transform_points
+from pixie.geometry.camera import make_T, project, transform_points
 from pixie.errors import ConfigError
 from pixie.features import Matches
 

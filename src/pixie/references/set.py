@@ -27,16 +27,16 @@ from typing import Callable, Sequence
 import numpy as np
 
 from pixie._version import __version__
-from pixie.camera import backproject, backproject_depth, invert_T, transform_points
+from pixie.geometry.camera import backproject, backproject_depth, invert_T, transform_points
 from pixie.config import PixieConfig, RefsConfig
-from pixie.encode import check_encodings, encode
+from pixie.references.encode import check_encodings, encode
 from pixie.errors import OutputError, PixieError, ReferenceSetError
 from pixie.features import Features, pack_features, unpack_features
-from pixie.geometry import nearest_pixel
-from pixie.mesh import Mesh, from_arrays
+from pixie.geometry.rotations import nearest_pixel
+from pixie.geometry.mesh import Mesh, from_arrays
 from pixie.paths import output_file, write_atomic
-from pixie.render import Renderer
-from pixie.views import camera_distance, roll, roll_angles, square_crop_K, start_K, view_poses
+from pixie.geometry.render import Renderer
+from pixie.references.views import camera_distance, roll, roll_angles, square_crop_K, start_K, view_poses
 
 FORMAT_VERSION = 1
 
@@ -71,7 +71,7 @@ class ReferenceSet:
     encodings: dict[str, np.ndarray] = field(default_factory=dict)
     features: dict[str, dict[str, np.ndarray]] = field(default_factory=dict)
     build_seconds: float = 0.0
-    templates: dict[str, np.ndarray] | None = None  # contour templates as arrays (pixie.contours), when built
+    templates: dict[str, np.ndarray] | None = None  # contour templates as arrays (pixie.references.templates), when built
     _xyz: np.ndarray | None = field(default=None, repr=False)
 
     @property
@@ -456,7 +456,7 @@ def load_reference_set(path: str | Path, mesh: Mesh | None = None) -> ReferenceS
 
 
 def _templates_from(data: dict) -> dict[str, np.ndarray] | None:
-    """Contour-template arrays stored under 'tpl/' keys (pixie.contours.ContourTemplates.from_arrays reads them)."""
+    """Contour-template arrays stored under 'tpl/' keys (pixie.references.templates.ContourTemplates.from_arrays reads them)."""
     return {k[4:]: v for k, v in data.items() if k.startswith("tpl/")} or None
 
 

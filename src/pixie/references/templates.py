@@ -9,7 +9,7 @@ camera about its optical axis (which passes through the object centre) turns the
 point, so a view's points are simply rotated (:meth:`ContourTemplates.rolled`).
 
 Points are stored relative to the principal point of the template camera, in template pixels; the box of the
-full silhouette (per roll) fixes scale and position against a query box (:mod:`pixie.edges`).
+full silhouette (per roll) fixes scale and position against a query box (:mod:`pixie.cues.edges`).
 
 >>> tpl = build_templates(mesh, n_views=300, size=128)
 >>> xy, ori, kind = tpl.rolled(np.radians([0, 10, 20]))   # (V, 3, N, 2), (V, 3, N), (V, N)
@@ -24,10 +24,10 @@ from dataclasses import dataclass
 import cv2
 import numpy as np
 
-from pixie.camera import backproject, invert_T, make_K, transform_points
-from pixie.mesh import Mesh
-from pixie.render import Renderer
-from pixie.views import camera_distance, fibonacci_sphere, look_at, up_vector
+from pixie.geometry.camera import backproject, invert_T, make_K, transform_points
+from pixie.geometry.mesh import Mesh
+from pixie.geometry.render import Renderer
+from pixie.references.views import camera_distance, fibonacci_sphere, look_at, up_vector
 
 SILHOUETTE, CREASE = 0, 1
 

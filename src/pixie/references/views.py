@@ -8,7 +8,7 @@ from __future__ import annotations
 
 import numpy as np
 
-from pixie.camera import look_at, make_K, make_T, rot_z
+from pixie.geometry.camera import look_at, make_K, make_T, rot_z
 
 # Box-aligned viewing directions (camera position relative to the centre, object frame) and up vectors.
 CANONICAL_DIRECTIONS = np.array(

@@ -19,7 +19,7 @@ from dataclasses import dataclass, field, replace
 
 import numpy as np
 
-from pixie.mesh import Mesh, from_arrays
+from pixie.geometry.mesh import Mesh, from_arrays
 
 STUD_PITCH = 8.0
 BRICK_H = 9.6

@@ -18,7 +18,7 @@ from __future__ import annotations
 
 import numpy as np
 
-from pixie.geometry import rodrigues
+from pixie.geometry.rotations import rodrigues
 from pixie.synth.assemblies import (
     Assembly,
     bracket_part,

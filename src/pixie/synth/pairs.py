@@ -5,10 +5,10 @@ One sample (deterministic from its seed, :func:`make_pair`):
 * **query**: a photo-like 640x480 frame (:func:`pixie.synth.photo.render_rgb`: random material,
   1-3 lights + ambient, shadows, procedural background, 2-5 distractor parts some of which occlude the
   target, then :func:`pixie.synth.photo.degrade`) of a procedural part (:mod:`pixie.synth.parts`) seen
-  40-120 px large, cropped like :func:`pixie.query.square_crop` (square of ``pad`` x the visible box,
+  40-120 px large, cropped like :func:`pixie.pipeline.query.square_crop` (square of ``pad`` x the visible box,
   resampled to ``size`` px, so small objects are upsampled like real LM-O crops);
-* **reference**: geometry encodings (``shade3_edges``, ``depth``, ``normal``; :func:`pixie.encode.encode`)
-  of the same part rendered like a reference view (``K_start`` focal, :func:`pixie.views.square_crop_K`
+* **reference**: geometry encodings (``shade3_edges``, ``depth``, ``normal``; :func:`pixie.references.encode.encode`)
+  of the same part rendered like a reference view (``K_start`` focal, :func:`pixie.references.views.square_crop_K`
   object-centred crop of ``size`` px) from a nearby viewpoint: viewing direction within ``max_view_deg``
   of the query's and an in-plane roll within ``max_roll_deg`` (180 = any);
 * **ground truth**: object XYZ of every query-crop pixel (rendered exactly at the crop intrinsics with
@@ -22,15 +22,15 @@ from dataclasses import dataclass, field
 
 import numpy as np
 
-from pixie.camera import backproject, invert_T, make_T, rot_z
-from pixie.encode import encode
-from pixie.geometry import nearest_pixel, rodrigues, rotation_between
-from pixie.mesh import Mesh
-from pixie.query import square_crop
-from pixie.render import Renderer, composite
+from pixie.geometry.camera import backproject, invert_T, make_T, rot_z
+from pixie.references.encode import encode
+from pixie.geometry.rotations import nearest_pixel, rodrigues, rotation_between
+from pixie.geometry.mesh import Mesh
+from pixie.pipeline.query import square_crop
+from pixie.geometry.render import Renderer, composite
 from pixie.synth import photo
 from pixie.synth.parts import random_part
-from pixie.views import camera_distance, crop_K, square_crop_K, start_K
+from pixie.references.views import camera_distance, crop_K, square_crop_K, start_K
 
 ENCODINGS = ("shade3_edges", "depth", "normal")
 IMAGE_W, IMAGE_H = 640, 480
@@ -210,7 +210,7 @@ def make_pair(seed: int, cfg: PairConfig | None = None, part_seed: int | None = 
             break
     rgb = photo.degrade(res.rgb, rng) if cfg.degrade else res.rgb
 
-    # Query crop around the (jittered) visible box, exactly like pixie.query.square_crop.
+    # Query crop around the (jittered) visible box, exactly like pixie.pipeline.query.square_crop.
     ys, xs = np.nonzero(vis)
     box = np.array([xs.min(), ys.min(), xs.max() + 1, ys.max() + 1], np.float64)
     wh = box[2:] - box[:2]

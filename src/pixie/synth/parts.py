@@ -3,7 +3,7 @@
 Every part is deterministic from an integer seed: :func:`random_part` picks a family (plate, bracket,
 flange, gear, shaft, housing, profile, block, or a smooth 'organic' union of ellipsoids) and its parameters, builds it as a solid with boolean
 operations (boxes, cylinders, holes, counterbores, ribs, chamfer / fillet approximations by hulls of
-bevelled shapes) and returns a :class:`pixie.mesh.Mesh` in millimetres whose vertices are split at
+bevelled shapes) and returns a :class:`pixie.geometry.mesh.Mesh` in millimetres whose vertices are split at
 sharp creases (> 30°), so smooth vertex normals stay flat on planar faces and round on cylinders.
 
 No mesh of any benchmark is used here; the wheels installed with pixie (trimesh 5.2) ship no test
@@ -14,7 +14,7 @@ from __future__ import annotations
 
 import numpy as np
 
-from pixie.mesh import Mesh, from_arrays
+from pixie.geometry.mesh import Mesh, from_arrays
 
 FAMILIES = ("plate", "bracket", "flange", "gear", "shaft", "housing", "profile", "block", "organic")
 

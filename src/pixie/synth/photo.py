@@ -1,7 +1,7 @@
 """Fast CPU "photo" renderer: shaded RGB images of posed meshes, with shadows and clutter.
 
-Built on :class:`pixie.render.Renderer` (Embree ray casting): one primary ray per pixel per object,
-z-buffered with :func:`pixie.render.composite`, flat-shaded with Lambert + Blinn-Phong specular
+Built on :class:`pixie.geometry.render.Renderer` (Embree ray casting): one primary ray per pixel per object,
+z-buffered with :func:`pixie.geometry.render.composite`, flat-shaded with Lambert + Blinn-Phong specular
 under 1-3 directional lights and an ambient term, with hard shadows from Embree shadow rays cast
 against a scene holding every object of the frame. Colours may be per object or per face (part
 colours of an assembly), backgrounds are procedural and :func:`degrade` adds camera effects.
@@ -29,8 +29,8 @@ from dataclasses import dataclass, field
 import cv2
 import numpy as np
 
-from pixie.camera import validate_K, validate_pose
-from pixie.render import RenderResult, Renderer, composite
+from pixie.geometry.camera import validate_K, validate_pose
+from pixie.geometry.render import RenderResult, Renderer, composite
 
 __all__ = [
     "Material",

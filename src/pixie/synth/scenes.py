@@ -40,10 +40,10 @@ from pathlib import Path
 import cv2
 import numpy as np
 
-from pixie.camera import look_at, make_K
-from pixie.eval.shape import aps, iou3d
-from pixie.mesh import Mesh, from_arrays
-from pixie.render import Renderer, composite
+from pixie.geometry.camera import look_at, make_K
+from pixie.eval.shape_metrics import aps, iou3d
+from pixie.geometry.mesh import Mesh, from_arrays
+from pixie.geometry.render import Renderer, composite
 from pixie.synth.assemblies import (
     Assembly,
     bracket_part,

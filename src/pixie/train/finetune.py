@@ -40,7 +40,7 @@ import torch.nn.functional as F
 from torch import nn
 
 from pixie.features import Features
-from pixie.geometry import check_image
+from pixie.geometry.rotations import check_image
 from pixie.matching.adapter import DescriptorAdapter, aliked_extract, load_adapter, shipped_adapter_path
 from pixie.matching.aliked import AlikedExtractor
 from pixie.synth.pairs import make_pair

@@ -7,11 +7,11 @@ from pathlib import Path
 import cv2
 import numpy as np
 
-from pixie.camera import project
-from pixie.encode import shade
+from pixie.geometry.camera import project
+from pixie.references.encode import shade
 from pixie.paths import write_atomic
-from pixie.references import ReferenceSet, encoding_images
-from pixie.render import Renderer
+from pixie.references.set import ReferenceSet, encoding_images
+from pixie.geometry.render import Renderer
 
 EST_COLOR = (255, 40, 40)
 GT_COLOR = (40, 220, 40)

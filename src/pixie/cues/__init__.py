@@ -1,0 +1,7 @@
+"""Cues beside the matcher that score or refine pose hypotheses: where new edge refinement code lands.
+
+Modules (imports go down this list): ``edges`` (edge / contour agreement), ``region`` (region-based
+refinement), ``refine`` (render-at-estimate refinement), ``shape`` (the shape-cue stage: verification and
+fusion). They may import ``geometry``, ``references``, ``features``, ``matching``, ``pose`` and
+``pipeline.query``; never ``pipeline.estimator``, ``eval`` or ``app``. The ``__init__`` imports nothing.
+"""
