@@ -20,7 +20,7 @@ $(STAMP): pyproject.toml constraints.txt
 setup: $(STAMP)
 
 demo: $(STAMP)
-	$(BIN)/python -m pixie.app.demo
+	$(BIN)/python -m pixie demo
 
 test: $(STAMP)
 	$(BIN)/python -m pytest -q

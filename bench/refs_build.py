@@ -35,7 +35,8 @@ sys.path.insert(0, str(REPO / "src"))
 
 from pixie.config import PixieConfig, RefsConfig, preset_names  # noqa: E402
 from pixie.geometry.mesh import load_mesh  # noqa: E402
-from pixie.references.set import build_reference_set, save_reference_set  # noqa: E402
+from pixie.references.set import build_reference_set
+from pixie.references.store import save_reference_set  # noqa: E402
 
 DEFAULT_DATASET = REPO.parent / "shared/data/lmo_dev/lmo"
 BAR_S = 30.0
@@ -87,7 +88,7 @@ def main(argv: list[str] | None = None) -> int:
         return 2
     matcher = None
     if args.threads:
-        from pixie.app.cluster import set_threads
+        from pixie.threads import set_threads
 
         set_threads(args.threads)
     if args.preset:

@@ -19,7 +19,7 @@ SRC = Path(__file__).resolve().parents[1] / "src" / "pixie"
 
 # Lowest first. A module may import modules of its own or a lower layer. Packages are listed by prefix.
 LAYERS: list[tuple[str, ...]] = [
-    ("pixie._version", "pixie.errors", "pixie.paths"),
+    ("pixie._version", "pixie.errors", "pixie.paths", "pixie.threads"),
     ("pixie.config", "pixie.weights"),
     ("pixie.geometry",),  # rotations -> camera -> mesh -> render
     ("pixie.features", "pixie.pipeline.query"),  # the keypoint contract; photo loading and crops (the cues use them)
@@ -33,6 +33,7 @@ LAYERS: list[tuple[str, ...]] = [
     ("pixie.synth",),
     ("pixie.train",),
     ("pixie.app",),  # cluster -> runner -> batch -> api, demo -> cli
+    ("pixie.__main__",),
 ]
 
 # Third-party packages that may be imported inside functions: optional extras or heavy imports that only

@@ -65,7 +65,8 @@ def work(tmp_path_factory, proc_trimesh):
     from pixie.config import RefsConfig
     from pixie.matching import get_matcher
     from pixie.geometry.mesh import load_mesh
-    from pixie.references.set import build_reference_set, save_reference_set
+    from pixie.references.set import build_reference_set
+    from pixie.references.store import save_reference_set
     from pixie.geometry.render import Renderer
 
     d = tmp_path_factory.mktemp("bad_inputs")
@@ -388,7 +389,7 @@ def test_float_array_image_refused_by_api(work):
     from pixie.errors import ImageError
     from pixie.pipeline.estimator import PoseEstimator
     from pixie.config import PixieConfig
-    from pixie.references.set import load_reference_set
+    from pixie.references.store import load_reference_set
 
     est = PoseEstimator(load_reference_set(work["refs"]), _fast_cfg())
     with pytest.raises(ImageError, match="uint8"):
@@ -487,7 +488,7 @@ def test_mask_and_box_disjoint(work, tmp_path):
 
 def test_api_mask_of_another_size(work):
     from pixie.errors import ImageError
-    from pixie.references.set import load_reference_set
+    from pixie.references.store import load_reference_set
     from pixie.pipeline.estimator import PoseEstimator
     from pixie.geometry.camera import parse_K
 
@@ -553,7 +554,7 @@ def test_refs_missing_an_array(work, tmp_path):
 def test_foreign_refs_refused_by_api(work, tmp_path):
     from pixie.errors import ReferenceSetError
     from pixie.geometry.mesh import load_mesh
-    from pixie.references.set import load_reference_set
+    from pixie.references.store import load_reference_set
 
     other = load_mesh(write_ply(tmp_path / "other.ply", TETRA, TETRA_F))
     with pytest.raises(ReferenceSetError, match="another mesh"):
@@ -849,7 +850,8 @@ def test_api_wrong_argument_types(work):
     from pixie.errors import PixieError
     from pixie.geometry.mesh import load_mesh
     from pixie.pipeline.query import load_image
-    from pixie.references.set import build_reference_set, load_reference_set
+    from pixie.references.set import build_reference_set
+    from pixie.references.store import load_reference_set
 
     for call in (lambda: load_mesh(None), lambda: load_image(3), lambda: load_reference_set(None),
                  lambda: build_reference_set("part.ply"), lambda: validate_K(None), lambda: validate_K("K"),
@@ -981,7 +983,7 @@ def test_two_threads_share_one_estimator(work):
 
 def test_estimator_flags_a_pose_that_contradicts_its_box(work, plaus):
     from pixie.pipeline.estimator import Hypothesis, PoseEstimator
-    from pixie.references.set import load_reference_set
+    from pixie.references.store import load_reference_set
 
     mesh, T, K = plaus
     est = PoseEstimator(load_reference_set(work["refs"]), _fast_cfg())

@@ -31,7 +31,7 @@ def batch_inputs(tmp_path_factory, build_refs):
     """Three generated photos of the demo part (different colours and clutter), K, boxes, and a saved reference set."""
     from pixie.app.demo import generated_part, generated_photo
     from pixie.pipeline.query import bbox_from_mask
-    from pixie.references.set import save_reference_set
+    from pixie.references.store import save_reference_set
     from pixie.geometry.render import Renderer
     from pixie.app.runner import make_matcher
 
@@ -148,7 +148,7 @@ def test_ray_batch_equals_serial(batch_inputs, tmp_path):
 def test_estimator_refuses_no_box(batch_inputs):
     from pixie.pipeline.estimator import PoseEstimator
     from pixie.pipeline.query import load_image
-    from pixie.references.set import load_reference_set
+    from pixie.references.store import load_reference_set
 
     root, refs_path, cfg, rows = batch_inputs
     est = PoseEstimator(load_reference_set(refs_path), cfg)

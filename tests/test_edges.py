@@ -105,7 +105,8 @@ def test_edge_search_on_a_real_lmo_photo(lmo_dataset):
 def test_templates_are_stored_with_the_reference_set(proc_mesh, tmp_path):
     """Templates kept in a reference set survive save/load exactly; a set without them loads None."""
     from pixie.config import RefsConfig
-    from pixie.references.set import build_reference_set, load_reference_set, save_reference_set
+    from pixie.references.set import build_reference_set
+    from pixie.references.store import load_reference_set, save_reference_set
 
     refs = build_reference_set(proc_mesh, RefsConfig(n_fibonacci=2, rotations=1, size=64, encodings=["depth"]))
     save_reference_set(refs, tmp_path / "plain.npz")

@@ -48,7 +48,8 @@ def test_folder_is_refused(tmp_path: Path) -> None:
 
 def test_reference_set_path_not_renamed(tmp_path: Path, proc_mesh) -> None:
     from pixie.config import RefsConfig
-    from pixie.references.set import build_reference_set, load_reference_set, save_reference_set
+    from pixie.references.set import build_reference_set
+    from pixie.references.store import load_reference_set, save_reference_set
 
     refs = build_reference_set(proc_mesh, RefsConfig(n_fibonacci=0, rotations=1, size=32, encodings=["depth"]))
     p = save_reference_set(refs, tmp_path / "part.refs")

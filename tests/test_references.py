@@ -20,15 +20,8 @@ from pixie.geometry.camera import backproject_depth, invert_T, transform_points
 from pixie.config import RefsConfig
 from pixie.errors import ReferenceSetError
 from pixie.geometry.mesh import from_arrays
-from pixie.references.set import (
-    FORMAT_VERSION,
-    add_features,
-    build_reference_set,
-    encoding_images,
-    keypoint_xyz_from_depth,
-    load_reference_set,
-    save_reference_set,
-)
+from pixie.references.set import add_features, build_reference_set, encoding_images, keypoint_xyz_from_depth
+from pixie.references.store import FORMAT_VERSION, load_reference_set, save_reference_set
 from pixie.geometry.render import Renderer
 from pixie.references.views import roll, square_crop_K, start_K
 
@@ -384,7 +377,8 @@ _WRITER = textwrap.dedent(
     import numpy as np
     from pixie.config import RefsConfig
     from pixie.geometry.mesh import from_arrays
-    from pixie.references.set import ReferenceSet, save_reference_set
+    from pixie.references.set import ReferenceSet
+    from pixie.references.store import save_reference_set
 
     # a big set of incompressible arrays: each save takes seconds
     rng = np.random.default_rng(0)

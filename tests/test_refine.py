@@ -9,7 +9,8 @@ import pytest
 from pixie.geometry.camera import make_K, project, rotation_angle_deg, transform_points
 from pixie.errors import CameraError
 from pixie.pipeline.query import check_bbox, square_crop
-from pixie.cues.refine import aligned_correspondences, crop_intrinsics, keypoint_xyz, render_in_crop
+from pixie.cues.refine import aligned_correspondences, keypoint_xyz, render_in_crop
+from pixie.geometry.camera import crop_intrinsics
 from pixie.geometry.render import Renderer
 
 K = make_K(600.0, 605.0, 321.5, 238.0)
@@ -28,10 +29,10 @@ def test_crop_camera_projects_like_the_crop(proc_mesh, make_pose):
     uv = project(K, X)
     box = np.r_[uv.min(0) - 3, uv.max(0) + 5]
     crop = square_crop(np.zeros((H, W, 3), np.uint8), box, 1.2, 256)
-    np.testing.assert_allclose(crop.to_original(project(crop_intrinsics(K, crop), X)), uv, atol=1e-9)
+    np.testing.assert_allclose(crop.to_original(project(crop_intrinsics(K, crop.A), X)), uv, atol=1e-9)
     turned = square_crop(np.zeros((H, W, 3), np.uint8), box, 1.2, 256, angle_rad=0.3)
     with pytest.raises(CameraError, match="unrotated"):
-        crop_intrinsics(K, turned)
+        crop_intrinsics(K, turned.A)
 
 
 def test_render_in_crop_is_the_crop_of_the_render(proc_mesh, make_pose):

@@ -9,16 +9,17 @@ from pixie.geometry.camera import make_K, rotation_angle_deg
 from pixie.references.templates import build_templates
 from pixie.pipeline.query import bbox_from_mask, check_bbox
 from pixie.geometry.render import Renderer
-from pixie.cues.shape import ShapeCues, ray_rotation
+from pixie.cues.shape import OPTICAL_AXIS, ShapeCues
+from pixie.geometry.rotations import rotation_between
 
 K = make_K(600.0, 600.0, 319.5, 239.5)
 H, W = 480, 640
 
 
-def test_ray_rotation_takes_the_axis_onto_the_ray():
+def test_rotation_between_takes_the_axis_onto_the_ray():
     for d in ([0.3, -0.2, 1.0], [0.0, 0.0, 1.0], [-0.5, 0.4, 0.7]):
         d = np.asarray(d) / np.linalg.norm(d)
-        R = ray_rotation(d)
+        R = rotation_between(OPTICAL_AXIS, d)
         np.testing.assert_allclose(R @ [0, 0, 1.0], d, atol=1e-12)
         np.testing.assert_allclose(R @ R.T, np.eye(3), atol=1e-12)
 

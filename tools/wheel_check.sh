@@ -38,7 +38,7 @@ NONET=()
 if unshare -rn true 2>/dev/null; then NONET=(unshare -rn); else echo "(unshare -rn not available: network not cut)"; fi
 run() {  # offline, empty HOME, no shared folder, no PIXIE_WEIGHTS, from an empty folder outside the repo
   (cd "$TMP/run" && env -u PIXIE_WEIGHTS -u PIXIE_SHARED HOME="$TMP/home" XDG_CACHE_HOME="$TMP/home/.cache" \
-     OMP_NUM_THREADS=1 "${NONET[@]}" "$TMP/venv/bin/$1" "${@:2}")
+     "${NONET[@]}" "$TMP/venv/bin/$1" "${@:2}")
 }
 run pixie --version
 run python -c "import pixie, sys; p = pixie.__file__; sys.exit(0 if '$REPO' not in p else 'pixie imported from the repo: ' + p)"

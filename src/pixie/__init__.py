@@ -41,7 +41,7 @@ _EXPORTS = {
     "load_mesh": "pixie.geometry.mesh",
     "load_image": "pixie.pipeline.query",
     "build_reference_set": "pixie.references.set",
-    "load_reference_set": "pixie.references.set",
+    "load_reference_set": "pixie.references.store",
 }
 
 __all__ = ["__version__", *_EXPORTS]

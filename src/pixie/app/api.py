@@ -7,34 +7,24 @@ from collections import OrderedDict
 from pathlib import Path
 from typing import Any, Sequence
 
-import numpy as np
 
-from pixie.geometry.camera import make_K, parse_K
+from pixie.geometry.camera import parse_K
 from pixie.config import DEFAULT_PRESET, PixieConfig
 from pixie.errors import ImageError
 from pixie.pipeline.estimator import PoseEstimator
 from pixie.geometry.mesh import Mesh, load_mesh
 from pixie.pipeline.query import load_image
-from pixie.references.set import ReferenceSet, load_reference_set
+from pixie.pose.results import NO_BOX_MESSAGE
+from pixie.references.set import ReferenceSet
+from pixie.references.store import ensure_templates, load_reference_set
 from pixie.app.runner import cached_reference_set
 from pixie.weights import cache_dir
 
-__all__ = ["estimate_pose", "as_K"]
+__all__ = ["estimate_pose"]
 
 MESH_SUFFIXES = (".ply", ".obj", ".stl", ".off", ".glb", ".gltf")
 _ESTIMATORS: "OrderedDict[tuple, Any]" = OrderedDict()  # a few ready estimators, so repeated calls skip loading
 _MAX_ESTIMATORS = 2
-
-
-def as_K(K: Any) -> np.ndarray:
-    """Intrinsics from a 3x3 matrix, ``(fx, fy, cx, cy)``, or the string ``"fx,fy,cx,cy"``."""
-
-    if isinstance(K, str):
-        return parse_K(K)
-    arr = np.asarray(K, dtype=np.float64)
-    if arr.shape == (4,):
-        return make_K(*arr)
-    return arr
 
 
 def _refs_cache() -> Path:
@@ -53,6 +43,7 @@ def _reference_set(obj: Any, cfg: PixieConfig, units: str, cache: Path | None):
         path = Path(os.fspath(obj))
         if path.suffix.lower() not in MESH_SUFFIXES:
             refs = load_reference_set(path)
+            ensure_templates(refs, cfg.shape)  # an older set: templates built once and saved into it
             return refs, ("file", str(path.resolve()), path.stat().st_mtime_ns)
         mesh = load_mesh(path, units=units)
     refs = cached_reference_set(mesh, cfg, cache or _refs_cache())
@@ -101,9 +92,7 @@ def estimate_pose(mesh_or_refs: Any, image: Any, K: Any, bbox: Sequence[float] |
     """
 
     if bbox is None and mask is None:
-        raise ImageError("no object box: pass bbox=(x, y, w, h) in pixels (w, h counting pixels) or mask=... "
-                         "(boolean array or mask image, white = object); pixie does not guess where the object is. "
-                         "To use the whole image on purpose pass bbox=(0, 0, width, height)")
+        raise ImageError(NO_BOX_MESSAGE)
     cfg = config if config is not None else PixieConfig.from_preset(preset)
     if device is not None:
         cfg.match.device = device
@@ -122,4 +111,4 @@ def estimate_pose(mesh_or_refs: Any, image: Any, K: Any, bbox: Sequence[float] |
             _ESTIMATORS.popitem(last=False)
     else:
         _ESTIMATORS.move_to_end(key)
-    return est.estimate(image, as_K(K), bbox=bbox, mask=mask)
+    return est.estimate(image, parse_K(K), bbox=bbox, mask=mask)

@@ -31,11 +31,11 @@ import json
 import time
 from dataclasses import dataclass
 from pathlib import Path
-from typing import Any, Callable
+from typing import Callable
 
 import numpy as np
 
-from pixie.geometry.camera import make_K
+from pixie.geometry.camera import parse_box, parse_K
 from pixie.app.cluster import WorkerSpec, ray_map, serial_map
 from pixie.config import PixieConfig
 from pixie.errors import ConfigError, ImageError, PixieError
@@ -43,7 +43,8 @@ from pixie.pipeline.estimator import PoseEstimator
 from pixie.eval.datasets import PoseEstimate, write_results_csv
 from pixie.paths import write_atomic
 from pixie.pipeline.query import bbox_from_mask, check_bbox, load_image
-from pixie.references.set import load_reference_set
+from pixie.pose.results import NO_BOX_WHY
+from pixie.references.store import ensure_templates, load_reference_set
 from pixie.geometry.render import Renderer
 from pixie.viz import encode_png, overlay_result
 from pixie.weights import sha256_file
@@ -70,36 +71,7 @@ class BatchItem:
         return self.image.name
 
 
-def _numbers(text: Any, what: str, where: str) -> list[float]:
-    if isinstance(text, (list, tuple)):
-        vals = list(np.asarray(text, dtype=np.float64).ravel())
-    else:
-        try:
-            vals = [float(v) for v in str(text).replace(";", ",").replace(" ", ",").split(",") if v.strip()]
-        except ValueError as exc:
-            raise ConfigError(f"{where}: cannot read {what} {text!r} as numbers") from exc
-    return vals
-
-
-def _K(value: Any, where: str) -> np.ndarray:
-
-    vals = _numbers(value, "K", where)
-    if len(vals) == 4:
-        return make_K(*vals)
-    if len(vals) == 9:
-        return np.asarray(vals, np.float64).reshape(3, 3)
-    raise ConfigError(f"{where}: K needs 4 values fx,fy,cx,cy (or 9), got {value!r}")
-
-
-def _bbox(value: Any, where: str) -> np.ndarray:
-    vals = _numbers(value, "bbox", where)
-    if len(vals) != 4:
-        raise ConfigError(f"{where}: bbox needs 4 values x,y,w,h, got {value!r}")
-    return np.asarray(vals, np.float64)
-
-
-NO_BOX_HELP = ("pixie needs the object's box or mask in every photo (the box sets the crop and the object's "
-               "distance): give a bbox x,y,w,h or a mask image")
+NO_BOX_HELP = f"give a bbox x,y,w,h or a mask image for every photo: {NO_BOX_WHY}"
 
 
 def read_manifest(path: str | Path) -> list[BatchItem]:
@@ -153,7 +125,8 @@ def read_manifest(path: str | Path) -> list[BatchItem]:
                 ids[key] = int(row[key]) if row.get(key) not in (None, "") else default
             except (TypeError, ValueError) as exc:
                 raise ConfigError(f"{where}: {key} must be an integer, got {row[key]!r}") from exc
-        items.append(BatchItem(image, _K(row["k"], where), _bbox(row["bbox"], where) if has_box else None, mask, **ids))
+        box = parse_box(row["bbox"], "bbox", where, ConfigError) if has_box else None
+        items.append(BatchItem(image, parse_K(row["k"], "K", where, ConfigError), box, mask, **ids))
     if missing:
         raise ImageError(f"{len(missing)} file(s) of the manifest do not exist:\n  " + "\n  ".join(missing[:20]))
     return items
@@ -168,8 +141,8 @@ def folder_items(folder: str | Path, K: str | np.ndarray | None, bbox: str | Non
     if not images:
         raise ImageError(f"no images ({', '.join(IMAGE_SUFFIXES)}) in {folder}")
     if K is None:
-        raise ConfigError(f"a folder of images needs --K fx,fy,cx,cy (or use a manifest with a K per image)")
-    Km = _K(K, "--K") if not isinstance(K, np.ndarray) else K
+        raise ConfigError("a folder of images needs --K fx,fy,cx,cy (or use a manifest with a K per image)")
+    Km = parse_K(K, "--K", error=ConfigError) if not isinstance(K, np.ndarray) else K
     if bbox is None and masks is None:
         raise ConfigError(f"no box for the images in {folder}: {NO_BOX_HELP}. Pass --bbox x,y,w,h (one box for "
                           "every image), --masks DIR (one mask per image, same file name), or a manifest")
@@ -181,7 +154,7 @@ def folder_items(folder: str | Path, K: str | np.ndarray | None, bbox: str | Non
             mask = next((c for c in cands if c.is_file()), None)
             if mask is None:
                 raise ImageError(f"no mask for {img.name} in {masks} (looked for {img.stem}.png etc.)")
-        items.append(BatchItem(img, Km, None if bbox is None else _bbox(bbox, "--bbox"), mask, 0, n, 1))
+        items.append(BatchItem(img, Km, None if bbox is None else parse_box(bbox, "--bbox", error=ConfigError), mask, 0, n, 1))
     return items
 
 
@@ -279,6 +252,7 @@ def run_batch(items: list[BatchItem], out_dir: str | Path, config: PixieConfig, 
     (out / "overlays").mkdir(parents=True, exist_ok=True)
     refs_path = Path(refs_path)
     refs = load_reference_set(refs_path)  # fail early on a bad set; workers load it again from the file
+    ensure_templates(refs, config.shape)  # an older set: templates built once here and saved, not in every worker
     mesh_sha = refs.mesh.source_hash
     del refs
     refs_sha = sha256_file(refs_path)

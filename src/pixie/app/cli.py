@@ -12,7 +12,6 @@ from __future__ import annotations
 import argparse
 import json
 import logging
-import re
 import signal
 import sys
 import threading
@@ -24,8 +23,7 @@ import numpy as np
 
 from pixie._version import __version__
 from pixie.app.batch import folder_items, read_manifest, run_batch
-from pixie.geometry.camera import check_image_K, parse_K
-from pixie.app.cluster import set_threads
+from pixie.geometry.camera import check_image_K, parse_K, parse_numbers
 from pixie.config import DEFAULT_PRESET, PixieConfig, preset_about, preset_names
 from pixie.app.demo import main as demo_main
 from pixie.references.encode import check_encodings
@@ -34,27 +32,16 @@ from pixie.pipeline.estimator import PoseEstimator
 from pixie.eval import BopDataset, add_eval_arguments, main_eval, run_eval
 from pixie.matching import available_matchers, backend_weights
 from pixie.geometry.mesh import load_mesh, units_note
+from pixie.threads import default_threads, set_threads
 from pixie.paths import not_an_input, output_dir, output_file, write_atomic
+from pixie.pose.results import no_box_message
 from pixie.pipeline.query import bbox_from_mask, check_bbox, check_query_mask, load_image
-from pixie.references.set import build_reference_set, check_output_path, load_reference_set, save_reference_set
+from pixie.references.set import build_reference_set
+from pixie.references.store import ensure_templates, check_output_path, load_reference_set, save_reference_set
 from pixie.geometry.render import Renderer
 from pixie.app.runner import cached_reference_set, make_matcher, reference_cache_path, run_dataset
 from pixie.viz import contact_sheet, overlay_result, save_png
 from pixie.weights import cache_dir, sha256_file, weights_status
-
-
-def _numbers(text: str | None, option: str, count: int | None = None, kind: type = float) -> list:
-    """Comma-separated numbers of a command-line option, with an error naming the option."""
-    items = re.split(r"[,\s]+", (text or "").strip())
-    try:
-        vals = [kind(v) for v in items if v != ""]
-    except ValueError:
-        raise UsageError(f"{option} expects comma-separated {'whole ' if kind is int else ''}numbers, got {text!r}") from None
-    if not all(np.isfinite(vals)):
-        raise UsageError(f"{option} expects finite numbers, got {text!r}")
-    if not vals or (count is not None and len(vals) != count):
-        raise UsageError(f"{option} expects {count or 'some'} comma-separated numbers, got {text!r}")
-    return vals
 
 
 def _config(args: argparse.Namespace) -> PixieConfig:
@@ -78,9 +65,14 @@ def _add_config_args(p: argparse.ArgumentParser) -> None:
                    "auto: CUDA when torch sees a GPU, else CPU); rendering and PnP run on the CPU")
 
 
+def _add_threads_arg(p: argparse.ArgumentParser, default: str | None = None) -> None:
+    p.add_argument("--threads", type=int, default=None, help="torch/OpenCV/BLAS threads of this process (default "
+                   + (default or f"{default_threads()} here: half the CPUs, 1..4; pixie.threads") + ")")
+
+
 def _add_parallel_args(p: argparse.ArgumentParser) -> None:
-    p.add_argument("--threads", type=int, default=None, help="torch/OpenCV threads per process (default 1 for batch "
-                   "and dataset runs, serial or Ray alike, so both give identical results; one --image: torch's default)")
+    _add_threads_arg(p, "1 for batch and dataset runs, serial or Ray alike, so both give identical results; one "
+                     f"--image: {default_threads()} here, half the CPUs, 1..4")
     p.add_argument("--ray", action="store_true", help="spread the work over Ray workers (pip install 'pixie-pose[ray]')")
     p.add_argument("--address", help="Ray cluster to join (auto, HOST:PORT or ray://HOST:10001); default: a local "
                    "Ray on this machine's CPUs")
@@ -158,7 +150,8 @@ def cmd_refs_build(args: argparse.Namespace) -> int:
     print(f"{mesh.name}: {len(mesh.vertices)} vertices; "
           f"{n_views} views x {cfg.refs.rotations} rolls at {cfg.refs.size} px, encodings {cfg.refs.encodings}, "
           f"features: {matcher.name if matcher else 'none'}")
-    refs = build_reference_set(mesh, cfg.refs, matcher=matcher, progress=_tqdm_progress("view"), workers=args.workers)
+    refs = build_reference_set(mesh, cfg.refs, matcher=matcher, progress=_tqdm_progress("view"), workers=args.workers,
+                               shape=cfg.shape)
     path = save_reference_set(refs, out)
     print(f"wrote {path} ({path.stat().st_size / 1e6:.1f} MB) in {refs.build_seconds:.1f} s")
     return 0
@@ -169,7 +162,7 @@ def cmd_refs_show(args: argparse.Namespace) -> int:
     if not 8 <= args.tile <= 1024:
         raise UsageError(f"--tile must be 8..1024 px, got {args.tile}")
     refs = load_reference_set(args.refs)
-    views = None if args.views is None else _numbers(args.views, "--views", kind=int)
+    views = None if args.views is None else parse_numbers(args.views, "--views", kind=int, error=UsageError)
     bad = [v for v in views or [] if not 0 <= v < refs.n_views]
     if bad:
         raise UsageError(f"--views {bad} not in the set, which has views 0..{refs.n_views - 1}")
@@ -204,7 +197,9 @@ def _refs_for_estimate(args: argparse.Namespace, cfg: PixieConfig, cache: Path):
     if bool(args.refs) == bool(args.mesh):
         raise PixieError("give the object as --refs SET.npz (from `pixie refs build`) or --mesh MODEL (built once and cached)")
     if args.refs:
-        return load_reference_set(args.refs), Path(args.refs)
+        refs = load_reference_set(args.refs)
+        ensure_templates(refs, cfg.shape)  # an older set: templates built once and saved into it
+        return refs, Path(args.refs)
     mesh = _load_mesh(args.mesh, args.units)
     path = reference_cache_path(mesh, cfg, cache)
     if not path.is_file():
@@ -221,19 +216,15 @@ def cmd_estimate(args: argparse.Namespace) -> int:
     if args.ray:
         raise PixieError("--ray distributes --batch runs; one --image runs here")
     cfg = _config(args)
-    if args.threads:
-        set_threads(args.threads)
     if args.K is None:
         raise UsageError("--K fx,fy,cx,cy is needed (the camera intrinsics in pixels)")
     if args.bbox is None and args.mask is None:
-        raise UsageError("no object box: pass --bbox x,y,w,h (pixels, w and h counting pixels) or --mask MASK.png "
-                         "(white = object); pixie does not guess where the object is. To use the whole image on "
-                         "purpose, pass --bbox 0,0,WIDTH,HEIGHT")
+        raise UsageError(no_box_message("--bbox x,y,w,h", "--mask MASK.png", "--bbox 0,0,WIDTH,HEIGHT"))
     out_json = output_file(args.output, force=args.force, what="result") if args.output else None
     out_png = output_file(args.overlay, force=args.force, what="overlay") if args.overlay else None
     not_an_input([out_json, out_png], [args.refs, args.mesh, args.image, args.mask])
     K = parse_K(args.K)
-    bbox = None if args.bbox is None else _numbers(args.bbox, "--bbox", 4)
+    bbox = None if args.bbox is None else parse_numbers(args.bbox, "--bbox", 4, error=UsageError)
     refs, _ = _refs_for_estimate(args, cfg, cache_dir().parent / "refs")
     image = load_image(args.image)
     K = check_image_K(K, image.shape[:2])
@@ -328,7 +319,7 @@ def cmd_weights(args: argparse.Namespace) -> int:
 # ------------------------------------------------------------------------------------------- run
 def cmd_run(args: argparse.Namespace) -> int:
     cfg = _config(args)
-    objects = None if not args.objects else _numbers(args.objects, "--objects", kind=int)
+    objects = None if not args.objects else parse_numbers(args.objects, "--objects", kind=int, error=UsageError)
     if args.max_targets is not None and args.max_targets < 1:
         raise UsageError(f"--max-targets must be at least 1, got {args.max_targets}")
     output_dir(args.output, what="output folder")
@@ -369,7 +360,8 @@ def build_parser() -> argparse.ArgumentParser:
     _add_units_arg(b)
     b.add_argument("--encodings", help="comma-separated encodings (default shade3_edges,depth,normal)")
     b.add_argument("--matcher", help="features to store (default: config match.matcher; 'none' for none)")
-    b.add_argument("--workers", type=int, default=1, help="render processes")
+    b.add_argument("--workers", type=int, default=1, help="render processes (1 thread each)")
+    _add_threads_arg(b)
     b.add_argument("--force", action="store_true", help="replace an existing output file")
     _add_config_args(b)
     b.set_defaults(func=cmd_refs_build)
@@ -380,6 +372,7 @@ def build_parser() -> argparse.ArgumentParser:
     s.add_argument("--views", help="comma-separated view indices (default all)")
     s.add_argument("--tile", type=int, default=128)
     s.add_argument("--force", action="store_true", help="replace an existing output file")
+    _add_threads_arg(s)
     s.set_defaults(func=cmd_refs_show)
 
     e = sub.add_parser("estimate", help="estimate the pose of the object in one photo, or in a folder / manifest of photos")
@@ -422,10 +415,12 @@ def build_parser() -> argparse.ArgumentParser:
     w = sub.add_parser("weights", help="list matching backends and where their weight files are found (sha256)")
     w.add_argument("--dir", help="a folder searched first (as --set match.weights_dir)")
     w.add_argument("--json", action="store_true", help="machine-readable output")
+    _add_threads_arg(w)
     w.set_defaults(func=cmd_weights)
 
     ev = sub.add_parser("eval", help="score BOP results (CSV) against a BOP dataset")
     add_eval_arguments(ev)
+    _add_threads_arg(ev)
     ev.set_defaults(func=main_eval)
     return p
 
@@ -453,8 +448,12 @@ def main(argv: list[str] | None = None) -> int:
             print(f"pixie: error: {exc}", file=sys.stderr)
             return 2
     args = build_parser().parse_args(argv)
+    if args.threads is not None and args.threads < 1:
+        print(f"pixie: error: --threads must be at least 1, got {args.threads}", file=sys.stderr)
+        return 2
     in_main = threading.current_thread() is threading.main_thread()
     previous = signal.signal(signal.SIGTERM, _on_sigterm) if in_main else None
+    threads_before = set_threads(args.threads or default_threads())  # batch / dataset runs set their own (default 1)
     try:
         return _main(args)
     except _Terminated:
@@ -462,6 +461,7 @@ def main(argv: list[str] | None = None) -> int:
         print("pixie: terminated", file=sys.stderr)
         return 143
     finally:
+        set_threads(threads_before)
         if in_main and previous is not None:
             signal.signal(signal.SIGTERM, previous)
 

@@ -7,7 +7,7 @@ that turns one item into one JSON-able record. Items are handed out one at a tim
 records come back to the driver, which alone writes outputs (so a run stays resumable and its files whole).
 
 Results equal a serial run's bit for bit when both run with the same torch/OpenCV thread count
-(:func:`set_threads`; ``--threads``, default 1): every random choice in the pipeline has a fixed seed per call.
+(:func:`pixie.threads.set_threads`; ``--threads``, default 1): every random choice in the pipeline has a fixed seed per call.
 """
 
 from __future__ import annotations
@@ -15,23 +15,10 @@ from __future__ import annotations
 from dataclasses import dataclass, field
 from typing import Any, Callable, Sequence
 
-import cv2
-
 from pixie.errors import PixieError
+from pixie.threads import set_threads
 
 __all__ = ["WorkerSpec", "set_threads", "init_ray", "ray_map", "serial_map"]
-
-
-def set_threads(n: int) -> int:
-    """Use ``n`` threads in torch and OpenCV in this process; returns the previous torch thread count."""
-    import torch
-
-    if n < 1:
-        raise PixieError(f"threads must be >= 1, got {n}")
-    before = torch.get_num_threads()
-    torch.set_num_threads(n)
-    cv2.setNumThreads(n)
-    return before
 
 
 @dataclass(frozen=True)

@@ -30,6 +30,7 @@ from pixie.pipeline.query import bbox_from_mask
 from pixie.geometry.render import Renderer
 from pixie.app.runner import cached_reference_set
 from pixie.viz import contact_sheet, overlay_pose, save_png
+from pixie.threads import default_threads, set_threads
 from pixie.weights import repo_root, shared_root
 
 REPO = Path(__file__).resolve().parents[3]
@@ -88,7 +89,12 @@ def main(argv: list[str] | None = None) -> int:
     ap.add_argument("--obj-id", type=int, default=5)
     ap.add_argument("--preset", default="default", help="configuration preset (fast, default, paper)")
     ap.add_argument("--device", choices=["auto", "cpu", "cuda"], help="where the matcher runs (default: the preset's, auto)")
+    ap.add_argument("--threads", type=int, default=None, help=f"torch/OpenCV/BLAS threads (default {default_threads()} "
+                    "here: half the CPUs, 1..4)")
     args = ap.parse_args(argv)
+    if args.threads is not None and args.threads < 1:
+        ap.error(f"--threads must be at least 1, got {args.threads}")
+    set_threads(args.threads or default_threads())
     out = Path(args.out) if args.out else default_out()
     cfg = PixieConfig.from_preset(args.preset)
     if args.device:

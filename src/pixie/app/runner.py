@@ -25,7 +25,8 @@ from typing import Callable, Hashable
 import numpy as np
 
 from pixie._version import __version__
-from pixie.app.cluster import WorkerSpec, ray_map, set_threads
+from pixie.app.cluster import WorkerSpec, ray_map
+from pixie.threads import set_threads
 from pixie.config import PixieConfig
 from pixie.errors import DatasetError, PixieError, ReferenceSetError
 from pixie.pipeline.estimator import PoseEstimator
@@ -33,7 +34,8 @@ from pixie.eval.datasets import BopDataset, PoseEstimate, Target, write_results_
 from pixie.matching import Matcher, matcher_from_config
 from pixie.geometry.mesh import Mesh, load_mesh
 from pixie.paths import output_dir, write_atomic
-from pixie.references.set import ReferenceSet, build_reference_set, load_reference_set, save_reference_set
+from pixie.references.set import ReferenceSet, build_reference_set
+from pixie.references.store import ensure_templates, load_reference_set, save_reference_set
 
 log = logging.getLogger(__name__)
 
@@ -81,14 +83,16 @@ def cached_reference_set(mesh: Mesh, cfg: PixieConfig, cache_dir: str | Path, ma
     try:
         if path.is_file():
             try:
-                return load_reference_set(path, mesh=mesh)
+                refs = load_reference_set(path, mesh=mesh)
+                ensure_templates(refs, cfg.shape)  # a set cached before templates were stored: upgraded once
+                return refs
             except ReferenceSetError as exc:
                 log.warning("rebuilding %s: %s", path, exc)
         matcher = matcher or make_matcher(cfg)
         t0 = time.perf_counter()
         if echo:
             echo(f"building references of {mesh.name} ({path.name}) ...")
-        refs = build_reference_set(mesh, cfg.refs, matcher=matcher, progress=progress, workers=workers)
+        refs = build_reference_set(mesh, cfg.refs, matcher=matcher, progress=progress, workers=workers, shape=cfg.shape)
         save_reference_set(refs, path)
         if echo:
             echo(f"built {mesh.name} in {time.perf_counter() - t0:.0f} s")

@@ -18,7 +18,7 @@ from dataclasses import dataclass
 import numpy as np
 
 from pixie.references.encode import encode
-from pixie.errors import CameraError
+from pixie.geometry.camera import crop_intrinsics
 from pixie.geometry.rotations import lookup
 from pixie.pose.solve import lift
 from pixie.pipeline.query import QueryCrop
@@ -36,31 +36,11 @@ class AlignedRender:
     T_cam_from_obj: np.ndarray
 
 
-def crop_intrinsics(K: np.ndarray, crop: QueryCrop) -> np.ndarray:
-    """Intrinsics of the camera that sees the crop's pixel grid (an unrotated crop of a pinhole image).
-
-    ``crop.A`` maps crop pixels to photo pixels (``u = s x + b``); the crop camera is ``A⁻¹ K``.
-
-    Raises
-    ------
-    CameraError
-        For a rotated crop (its camera is not an upper-triangular K; render a rolled pose instead).
-    """
-    M, b = crop.A[:, :2], crop.A[:, 2]
-    if abs(M[0, 1]) > 1e-9 or abs(M[1, 0]) > 1e-9:
-        raise CameraError("crop_intrinsics needs an unrotated crop (angle 0)")
-    Minv = np.linalg.inv(M)
-    A_inv = np.eye(3)
-    A_inv[:2, :2] = Minv
-    A_inv[:2, 2] = -Minv @ b
-    return A_inv @ np.asarray(K, np.float64)
-
-
 def render_in_crop(renderer: Renderer, T_cam_from_obj: np.ndarray, K: np.ndarray, crop: QueryCrop,
                    encodings: list[str]) -> AlignedRender:
     """Render the object at ``T_cam_from_obj`` (photo camera ``K``) into ``crop``'s pixel grid and encode it."""
     size = crop.image.shape[0]
-    Kc = crop_intrinsics(K, crop)
+    Kc = crop_intrinsics(K, crop.A)
     r = renderer.render(T_cam_from_obj, Kc, size, size)
     mask = r.mask
     xyz = r.xyz.astype(np.float32).copy()

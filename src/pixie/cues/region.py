@@ -19,7 +19,7 @@ from dataclasses import dataclass
 import cv2
 import numpy as np
 
-from pixie.geometry.camera import invert_T, make_T, transform_points
+from pixie.geometry.camera import make_T, transform_points
 from pixie.geometry.render import Renderer
 
 

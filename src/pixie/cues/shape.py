@@ -21,8 +21,10 @@ from dataclasses import dataclass
 import cv2
 import numpy as np
 
-from pixie.geometry.camera import make_T
-from pixie.references.templates import ContourTemplates, build_templates, distinct_by_rotation, view_points
+from pixie.geometry.camera import crop_intrinsics, make_T
+from pixie.geometry.rotations import rotation_between
+from pixie.references.store import ensure_templates
+from pixie.references.templates import ContourTemplates, distinct_by_rotation, view_points
 from pixie.cues.edges import EdgeQuery, orientation_bins, prepare_query, search, template_bank
 from pixie.geometry.mesh import Mesh
 from pixie.pipeline.query import square_crop
@@ -45,23 +47,7 @@ class ShapeCandidate:
         return self.edge + (self.region - 0.5)
 
 
-def ray_rotation(d: np.ndarray) -> np.ndarray:
-    """Smallest rotation taking the optical axis (0, 0, 1) onto the unit ray ``d``."""
-    d = np.asarray(d, np.float64) / np.linalg.norm(d)
-    v, c = np.cross([0.0, 0.0, 1.0], d), float(d[2])
-    if np.linalg.norm(v) < 1e-12:
-        return np.eye(3) if c > 0 else np.diag([1.0, -1.0, -1.0])
-    vx = np.array([[0, -v[2], v[1]], [v[2], 0, -v[0]], [-v[1], v[0], 0]])
-    return np.eye(3) + vx + vx @ vx / (1.0 + c)
-
-
-def crop_camera(K: np.ndarray, A: np.ndarray) -> np.ndarray:
-    """Intrinsics of an unrotated crop whose pixels map to photo pixels by ``A`` (2 x 3)."""
-    Ai = np.eye(3)
-    M = A[:, :2]
-    Ai[:2, :2] = np.linalg.inv(M)
-    Ai[:2, 2] = -Ai[:2, :2] @ A[:, 2]
-    return Ai @ np.asarray(K, np.float64)
+OPTICAL_AXIS = np.array([0.0, 0.0, 1.0])
 
 
 class ShapeCues:
@@ -119,7 +105,7 @@ class ShapeCues:
         a = float(np.hypot(q.crop.A[0, 0], q.crop.A[1, 0]))  # photo px per crop px
         f_p = 0.5 * (K[0, 0] + K[1, 1])
         z = self._z_t[view] * f_p / (self.tpl.K[0, 0] * scale * a)
-        R = ray_rotation(d) @ self.tpl.pose(view, angle)[:3, :3]
+        R = rotation_between(OPTICAL_AXIS, d / np.linalg.norm(d)) @ self.tpl.pose(view, angle)[:3, :3]
         C = d * (z / d[2])
         return make_T(R, C - R @ self.mesh.center)
 
@@ -159,7 +145,7 @@ class ShapeCues:
         """'edge' (weighted as in retrieval), 'silhouette' and 'crease' (mean response of those points; crease is
         NaN without crease points) and 'region' agreement of pose ``T`` with the query crop."""
         size = q.resp.shape[1]
-        Kc = crop_camera(K, q.crop.A)
+        Kc = crop_intrinsics(K, q.crop.A)
         r = self.renderer.render(T, Kc, size, size)
         if r.mask.sum() < 10:
             return {"edge": 0.0, "silhouette": 0.0, "crease": float("nan"), "region": 0.5}
@@ -190,7 +176,7 @@ class ShapeCues:
         """
         size = int(round(box_px * pad))
         crop = square_crop(image, box_xyxy, pad, size)
-        Kc = crop_camera(K, crop.A)
+        Kc = crop_intrinsics(K, crop.A)
         valid = cv2.warpAffine(np.full(image.shape[:2], 255, np.uint8), crop.A, (size, size),
                                flags=cv2.WARP_INVERSE_MAP | cv2.INTER_NEAREST, borderValue=0) > 0
         return refine_pose(self.renderer, T, Kc, crop.image, valid=valid, **kw)
@@ -204,11 +190,10 @@ def fused_score(cfg, match_score: float, best_match: float, edge: float, region:
 
 
 def shape_cues(refs, cfg) -> ShapeCues:
-    """:class:`ShapeCues` of a reference set's object: its stored templates (``refs.templates``, arrays of
-    :meth:`ContourTemplates.to_arrays`), or templates built now (``cfg``) and kept with the set."""
-    tpl = ContourTemplates.from_arrays(refs.templates) if refs.templates else None
-    if tpl is None or tpl.n_views != cfg.views or tpl.size != cfg.size or tpl.n_points != cfg.points:
-        tpl = build_templates(refs.mesh, cfg.views, cfg.size, cfg.points)
-        refs.templates = tpl.to_arrays()  # kept with the set (saved with it when it is saved)
+    """:class:`ShapeCues` of a reference set's object from its stored templates (``refs.templates``, arrays of
+    :meth:`ContourTemplates.to_arrays`); a set without templates that fit ``cfg`` gets them built now
+    (:func:`pixie.references.store.ensure_templates`, in memory, with an INFO message)."""
+    ensure_templates(refs, cfg, save=False)
+    tpl = ContourTemplates.from_arrays(refs.templates)
     return ShapeCues(refs.mesh, tpl, n_rolls=cfg.rolls, crease_weight=cfg.crease_weight,
                      query_kw={"min_mag": cfg.min_mag}, region_k=cfg.region_k, region_weight=cfg.region_weight)

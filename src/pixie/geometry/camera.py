@@ -1,4 +1,4 @@
-"""Pinhole camera (OpenCV convention) and rigid-pose helpers.
+"""Pinhole camera (OpenCV convention) and rigid-pose helpers; the one reader of numbers, K and boxes from text.
 
 Camera frame: x right, y down, z forward. A pixel's centre has integer coordinates,
 so pixel (u, v) spans [u - 0.5, u + 0.5]. Poses are 4x4 ``T_cam_from_obj`` matrices.
@@ -8,6 +8,7 @@ from __future__ import annotations
 
 import re
 import warnings
+from typing import Any
 
 import numpy as np
 
@@ -19,19 +20,95 @@ def make_K(fx: float, fy: float, cx: float, cy: float) -> np.ndarray:
     return np.array([[fx, 0.0, cx], [0.0, fy, cy], [0.0, 0.0, 1.0]], dtype=np.float64)
 
 
-def parse_K(text: str) -> np.ndarray:
-    """Parse ``"fx,fy,cx,cy"`` or nine comma-separated row-major values into K."""
+def _split_numbers(value: Any, kind: type = float) -> list:
+    """Numbers of a text (separated by commas, semicolons or spaces) or a sequence; ValueError if one is not."""
+    if isinstance(value, str):
+        return [kind(v) for v in re.split(r"[,;\s]+", value.strip()) if v != ""]
+    vals = np.asarray(value, dtype=np.float64).ravel()
+    if kind is int and not all(float(v).is_integer() for v in vals if np.isfinite(v)):
+        raise ValueError(value)
+    return [kind(v) if np.isfinite(v) else float(v) for v in vals]
+
+
+def parse_numbers(value: Any, what: str, count: int | None = None, kind: type = float, where: str = "",
+                  error: type[Exception] = CameraError) -> list:
+    """The one reader of comma-separated numbers (command-line options, manifest cells, K, boxes).
+
+    ``what`` (an option or field name) and ``where`` (a manifest row ...) are named in the ``error`` raised for
+    text that is not numbers, non-finite numbers, or not ``count`` of them.
+    """
+    at = f"{where}: " if where else ""
     try:
-        vals = [float(v) for v in re.split(r"[,\s]+", text.strip()) if v]
-    except ValueError as exc:
-        raise CameraError(f"cannot parse intrinsics {text!r}: expected 'fx,fy,cx,cy'") from exc
+        vals = _split_numbers(value, kind)
+    except (TypeError, ValueError):
+        raise error(f"{at}{what} expects comma-separated {'whole ' if kind is int else ''}numbers, "
+                    f"got {value!r}") from None
     if not all(np.isfinite(vals)):
-        raise CameraError(f"intrinsics {text!r} have non-finite entries")
+        raise error(f"{at}{what} expects finite numbers, got {value!r}")
+    if not vals or (count is not None and len(vals) != count):
+        raise error(f"{at}{what} expects {count or 'some'} comma-separated numbers, got {value!r}")
+    return vals
+
+
+def parse_box(value: Any, what: str = "bbox", where: str = "", error: type[Exception] = CameraError) -> np.ndarray:
+    """A box ``x,y,w,h`` (text or 4 numbers) as a float64 array (checked against an image by ``check_bbox``)."""
+    return np.asarray(parse_numbers(value, what, 4, where=where, error=error), np.float64)
+
+
+def parse_K(value: Any, what: str = "intrinsics", where: str = "", error: type[Exception] = CameraError) -> np.ndarray:
+    """The one K reader: ``"fx,fy,cx,cy"``, nine row-major values (text or a sequence), or a 3x3 matrix.
+
+    A 2-D array is returned as float64 unchanged (:func:`validate_K` checks it); text or a flat sequence of
+    another length raises ``error`` naming ``what`` (and ``where``).
+    """
+    at = f"{where}: " if where else ""
+    if not isinstance(value, str) and np.ndim(value) == 2:
+        return np.asarray(value, dtype=np.float64)
+    try:
+        vals = _split_numbers(value)
+    except (TypeError, ValueError) as exc:
+        raise error(f"{at}cannot parse {what} {value!r}: expected 'fx,fy,cx,cy'") from exc
+    if not all(np.isfinite(vals)):
+        raise error(f"{at}{what} {value!r} have non-finite entries")
     if len(vals) == 4:
         return make_K(*vals)
     if len(vals) == 9:
         return np.asarray(vals, dtype=np.float64).reshape(3, 3)
-    raise CameraError(f"intrinsics {text!r} have {len(vals)} values; expected 4 (fx,fy,cx,cy) or 9")
+    raise error(f"{at}{what} needs 4 values fx,fy,cx,cy (or 9), got {len(vals)} values: {value!r}")
+
+
+def crop_K(K: np.ndarray, x0: float, y0: float, side: float, size: int) -> np.ndarray:
+    """Intrinsics after cropping the square [x0, x0+side) x [y0, y0+side) and resizing it to ``size``.
+
+    Uses the pixel-centre convention: the crop's pixel i covers original [x0 + i*s, x0 + (i+1)*s).
+    """
+    s = size / side
+    return make_K(
+        K[0, 0] * s,
+        K[1, 1] * s,
+        (K[0, 2] + 0.5 - x0) * s - 0.5,
+        (K[1, 2] + 0.5 - y0) * s - 0.5,
+    )
+
+
+def crop_intrinsics(K: np.ndarray, A: np.ndarray) -> np.ndarray:
+    """Intrinsics of the camera that sees an unrotated crop's pixel grid, the crop's pixels mapping to the photo's
+    by ``A`` (2 x 3, ``u = M x + b``): ``A⁻¹ K``. With :func:`crop_K` (a square window resized) the one home of
+    crop intrinsics.
+
+    Raises
+    ------
+    CameraError
+        For a rotated crop (its camera is not an upper-triangular K; render a rolled pose instead).
+    """
+    M, b = A[:, :2], A[:, 2]
+    if abs(M[0, 1]) > 1e-9 or abs(M[1, 0]) > 1e-9:
+        raise CameraError("crop_intrinsics needs an unrotated crop (angle 0)")
+    Minv = np.linalg.inv(M)
+    A_inv = np.eye(3)
+    A_inv[:2, :2] = Minv
+    A_inv[:2, 2] = -Minv @ b
+    return A_inv @ np.asarray(K, np.float64)
 
 
 def validate_K(K: np.ndarray, image_size: tuple[int, int] | None = None) -> np.ndarray:

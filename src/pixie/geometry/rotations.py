@@ -40,10 +40,20 @@ def rodrigues(axis: np.ndarray, angle: float) -> np.ndarray:
 def rotation_between(a: np.ndarray, b: np.ndarray) -> np.ndarray:
     """The smallest rotation taking unit vector ``a`` onto unit vector ``b`` (identity when they coincide).
 
-    Used to turn a camera so that a point seen along ``a`` is seen along ``b`` (keeping the in-plane roll).
-    ``a = -b`` has no unique answer and is not handled.
+    Used to turn a camera so that a point seen along ``a`` is seen along ``b`` (keeping the in-plane roll), e.g.
+    the optical axis onto a viewing ray. Parallel vectors (``|a x b| < 1e-12``) give exactly the identity; opposite
+    ones, which have no unique answer, the half turn about the unit axis nearest the first coordinate axis
+    perpendicular to ``a`` (about x for ``a = z``).
     """
     v, c = np.cross(a, b), float(np.dot(a, b))
+    if np.linalg.norm(v) < 1e-12:
+        if c > 0:
+            return np.eye(3)
+        a = np.asarray(a, np.float64)
+        e = np.eye(3)[int(np.argmin(np.abs(a)))]
+        u = e - np.dot(e, a) * a
+        u /= np.linalg.norm(u)
+        return 2.0 * np.outer(u, u) - np.eye(3)
     vx = skew(v)
     return np.eye(3) + vx + vx @ vx / (1.0 + c)
 

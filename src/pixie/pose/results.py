@@ -12,7 +12,8 @@ import numpy as np
 
 from pixie._version import __version__
 
-__all__ = ["Hypothesis", "PoseResult", "set_confidences", "FRAME", "SCORE_NOTE", "CONFIDENCE_NOTE", "NO_BOX_MESSAGE"]
+__all__ = ["Hypothesis", "PoseResult", "set_confidences", "FRAME", "SCORE_NOTE", "CONFIDENCE_NOTE", "NO_BOX_MESSAGE",
+           "NO_BOX_WHY", "no_box_message"]
 
 FRAME = ("OpenCV camera (x right, y down, z forward); T_cam_from_obj maps object points (mm, the mesh's frame) "
          "to camera points: x_cam = R x_obj + t")
@@ -23,9 +24,16 @@ CONFIDENCE_NOTE = ("score / (score + the best distinct alternative's score): how
                    "0.5 = a tie. Not calibrated: it is not a probability that the pose is correct")
 
 
-NO_BOX_MESSAGE = ("no object box: pass bbox=(x, y, w, h) in pixels (w, h counting pixels) or mask=... (white/True = "
-                  "object); pixie does not guess where the object is (the box sets the crop and the object's distance). "
-                  "To use the whole image on purpose pass bbox=(0, 0, width, height)")
+NO_BOX_WHY = "pixie does not guess where the object is (the box sets the crop and the object's distance)"
+
+
+def no_box_message(box: str, mask: str, whole: str) -> str:
+    """The one "no object box" message, in the words of one interface (Python, the command line)."""
+    return (f"no object box: pass {box} in pixels (w, h counting pixels) or {mask} (white = object); {NO_BOX_WHY}. "
+            f"To use the whole image on purpose pass {whole}")
+
+
+NO_BOX_MESSAGE = no_box_message("bbox=(x, y, w, h)", "mask=... (boolean array or mask image)", "bbox=(0, 0, width, height)")
 
 
 @dataclass

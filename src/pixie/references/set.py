@@ -7,6 +7,12 @@ exactly from them, object-space XYZ_i (back-projection with K then T⁻¹). Matc
 encoded image are stored together with the object-space XYZ of each keypoint, so inference neither
 renders nor re-extracts anything.
 
+The set also owns the offline part of the shape cues: contour templates (:mod:`pixie.references.templates`),
+built with the set (``build_reference_set(..., shape=cfg.shape)``), stored under ``tpl/`` keys with their own
+version (``TEMPLATES_VERSION``) and loaded with it. A set without fitting templates (written before they were
+stored, or for other ``shape.*`` settings) is upgraded once by :func:`ensure_templates`: built, logged, and saved
+back into the file it came from when that file is writable.
+
 Files are ``.npz`` written atomically (temp file + rename) with a format version, the mesh's content
 hash and the build config; a stale, foreign or corrupt file raises :class:`ReferenceSetError`.
 """
@@ -14,31 +20,53 @@ hash and the build config; a stale, foreign or corrupt file raises :class:`Refer
 from __future__ import annotations
 
 import ctypes
-import json
 import os
 import signal
 import time
-import zipfile
-import zlib
 from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Callable, Sequence
 
 import numpy as np
 
-from pixie._version import __version__
 from pixie.geometry.camera import backproject, backproject_depth, invert_T, transform_points
-from pixie.config import PixieConfig, RefsConfig
+from pixie.config import PixieConfig, RefsConfig, ShapeConfig
 from pixie.references.encode import check_encodings, encode
-from pixie.errors import OutputError, PixieError, ReferenceSetError
+from pixie.errors import ReferenceSetError
 from pixie.features import Features, pack_features, unpack_features
 from pixie.geometry.rotations import nearest_pixel
-from pixie.geometry.mesh import Mesh, from_arrays
-from pixie.paths import output_file, write_atomic
+from pixie.geometry.mesh import Mesh
+from pixie.threads import set_forked_worker_threads
 from pixie.geometry.render import Renderer
+from pixie.references.templates import ContourTemplates, build_templates
 from pixie.references.views import camera_distance, roll, roll_angles, square_crop_K, start_K, view_poses
 
-FORMAT_VERSION = 1
+
+class _Decoded:
+    """A field stored in a compact form and decoded on first access: given a callable (``load_reference_set``
+    gives the depth and normals so, ~1.3 s of a 20 MB set's load when inference never reads them), the
+    attribute is its result, computed once; given an array, the array."""
+
+    def __set_name__(self, owner, name: str) -> None:
+        self.slot = "_decoded_" + name
+
+    def __get__(self, obj, objtype=None):
+        if obj is None:
+            raise AttributeError(self.slot)  # no class-level default: the dataclass field stays required
+        value = obj.__dict__[self.slot]
+        if value is None:
+            value = obj.__dict__[self.slot] = obj.__dict__[self.slot + "_stored"]()
+        return value
+
+    def __set__(self, obj, value) -> None:
+        lazy = callable(value)
+        obj.__dict__[self.slot + "_stored"] = value if lazy else None  # the stored form, saved back unchanged
+        obj.__dict__[self.slot] = None if lazy else value
+
+    @staticmethod
+    def stored(obj, name: str):
+        """The stored (undecoded) form of field ``name``, or None when it was set as an array."""
+        return obj.__dict__.get(f"_decoded_{name}_stored")
 
 
 @dataclass
@@ -66,12 +94,13 @@ class ReferenceSet:
     Ks: np.ndarray
     K_start: np.ndarray
     canonical: np.ndarray
-    depth: np.ndarray
-    normals: np.ndarray
+    depth: np.ndarray = _Decoded()
+    normals: np.ndarray = _Decoded()
     encodings: dict[str, np.ndarray] = field(default_factory=dict)
     features: dict[str, dict[str, np.ndarray]] = field(default_factory=dict)
     build_seconds: float = 0.0
     templates: dict[str, np.ndarray] | None = None  # contour templates as arrays (pixie.references.templates), when built
+    source_path: Path | None = field(default=None, repr=False, compare=False)  # the file it was loaded from
     _xyz: np.ndarray | None = field(default=None, repr=False)
 
     @property
@@ -84,7 +113,8 @@ class ReferenceSet:
 
     @property
     def size(self) -> int:
-        return self.depth.shape[1]
+        stored = _Decoded.stored(self, "depth")
+        return stored.shape[1] if stored is not None else self.depth.shape[1]
 
     @property
     def masks(self) -> np.ndarray:
@@ -155,8 +185,10 @@ def build_reference_set(
     matcher=None,
     progress: Callable[[int, int], None] | None = None,
     workers: int = 1,
+    shape: ShapeConfig | None = None,
 ) -> ReferenceSet:
-    """Render, encode and (optionally) extract matcher features for every view and roll.
+    """Render, encode and (optionally) extract matcher features for every view and roll; build the contour
+    templates of the shape cues.
 
     Parameters
     ----------
@@ -169,7 +201,14 @@ def build_reference_set(
     workers : int
         Processes that render and encode in parallel (views are independent); features are
         extracted in this process while the workers render the next views.
+    shape : ShapeConfig, optional
+        The shape cues' settings: their contour templates are built when ``shape.enabled`` (default: the
+        ``shape`` section of a PixieConfig ``config``, else ``ShapeConfig()``).
     """
+    if shape is None:
+        shape = config.shape if isinstance(config, PixieConfig) else ShapeConfig()
+    if not isinstance(shape, ShapeConfig):
+        raise ReferenceSetError(f"shape must be a ShapeConfig, got {type(shape).__name__}")
     if not isinstance(mesh, Mesh):
         raise ReferenceSetError(f"build_reference_set needs a pixie Mesh (pixie.load_mesh), got {type(mesh).__name__}")
     cfg = config.refs if isinstance(config, PixieConfig) else (config or RefsConfig())
@@ -214,8 +253,14 @@ def build_reference_set(
     )
     if matcher is not None:
         _store_features(refs, matcher.name, feats, xyzs)
+    if shape.enabled:
+        refs.templates = _build_templates(refs.mesh, shape).to_arrays()
     refs.build_seconds = time.perf_counter() - t0
     return refs
+
+
+def _build_templates(mesh: Mesh, shape: ShapeConfig) -> ContourTemplates:
+    return build_templates(mesh, shape.views, shape.size, shape.points)
 
 
 def _store_features(refs: ReferenceSet, matcher_name: str, feats: dict, xyzs: dict) -> None:
@@ -297,6 +342,7 @@ def _die_with_parent(parent_pid: int) -> None:
 
 def _worker_init(mesh: Mesh, cfg: RefsConfig, K0: np.ndarray, n_render: int | None, parent_pid: int) -> None:
     _die_with_parent(parent_pid)
+    set_forked_worker_threads()  # one thread per render process: the workers are the parallelism
     _WORKER_STATE.update(mesh=mesh, cfg=cfg, K0=K0, n_render=n_render,
                          renderer=Renderer(mesh, smooth_normals=cfg.smooth_normals))
 
@@ -360,125 +406,6 @@ def add_features(refs: ReferenceSet, matcher, encodings: list[str] | None = None
         if progress:
             progress(i + 1, refs.n_views)
     _store_features(refs, matcher.name, feats, xyzs)
-
-
-# ----------------------------------------------------------------------------------------- I/O
-
-
-def check_output_path(path: str | Path, force: bool = True) -> Path:
-    """The path a set will be written to, exactly as given (no suffix added); its folder is created and must
-    be writable; an existing file is refused unless ``force`` (:func:`pixie.paths.output_file`)."""
-    try:
-        return output_file(path, force=force, what="reference set")
-    except OutputError as exc:
-        raise ReferenceSetError(str(exc)) from exc
-
-
-def save_reference_set(refs: ReferenceSet, path: str | Path) -> Path:
-    """Write ``refs`` to ``path`` (.npz) atomically: a killed write leaves no partial file."""
-    path = check_output_path(path)
-    meta = {
-        "format_version": FORMAT_VERSION,
-        "pixie_version": __version__,
-        "mesh_name": refs.mesh.name,
-        "mesh_hash": refs.mesh.source_hash,
-        "config": refs.config.__dict__,
-        "build_seconds": refs.build_seconds,
-        "encodings": list(refs.encodings),
-        "features": sorted(refs.features),
-    }
-    arrays = {
-        "meta": np.frombuffer(json.dumps(meta).encode(), np.uint8),
-        "poses": refs.poses, "Ks": refs.Ks, "K_start": refs.K_start, "canonical": refs.canonical,
-        **_quantise_depth(refs.depth),
-        "normals_q": np.round(refs.normals * 127.0).astype(np.int8),
-        "mesh_vertices": refs.mesh.vertices, "mesh_faces": refs.mesh.faces.astype(np.int32),
-    }
-    if refs.config.store_rotated_encodings:  # roll-0 encodings are re-derived from D and N on load
-        for name, img in refs.encodings.items():
-            arrays[f"enc/{name}"] = img
-    for key, packed in refs.features.items():
-        for k, v in packed.items():
-            arrays[f"feat/{key}/{k}"] = v
-    if refs.templates is not None:
-        arrays.update({f"tpl/{k}": np.asarray(v) for k, v in refs.templates.items()})
-    # atomic (a killed write leaves no partial file) and 0644; a file object, else numpy appends '.npz'
-    return write_atomic(path, lambda fh: np.savez_compressed(fh, **arrays))
-
-
-def load_reference_set(path: str | Path, mesh: Mesh | None = None) -> ReferenceSet:
-    """Read a reference set; with ``mesh`` given, refuse a set built from another mesh file."""
-    if not isinstance(path, (str, os.PathLike)):
-        raise ReferenceSetError(f"reference set path must be a str or Path, got {type(path).__name__}")
-    path = Path(path)
-    if not path.is_file():
-        raise ReferenceSetError(f"reference set not found: {path} (build it with `pixie refs build MESH -o {path}`)")
-    try:
-        with np.load(path, allow_pickle=False) as z:
-            data = {k: z[k] for k in z.files}
-    except (zipfile.BadZipFile, zlib.error, ValueError, OSError, EOFError) as exc:
-        raise ReferenceSetError(f"reference set {path} is corrupt or not a pixie file: {exc}") from exc
-    if "meta" not in data:
-        raise ReferenceSetError(f"{path} is not a pixie reference set (no metadata)")
-    try:
-        meta = json.loads(data["meta"].tobytes().decode())
-    except ValueError as exc:
-        raise ReferenceSetError(f"{path}: unreadable metadata") from exc
-    if not isinstance(meta, dict):
-        raise ReferenceSetError(f"{path}: unreadable metadata")
-    if meta.get("format_version") != FORMAT_VERSION:
-        raise ReferenceSetError(
-            f"{path} has format version {meta.get('format_version')}, this pixie reads {FORMAT_VERSION}: rebuild it"
-        )
-    if mesh is not None and mesh.source_hash != meta["mesh_hash"]:
-        raise ReferenceSetError(f"{path} was built from another mesh ({meta['mesh_name']}, hash differs): rebuild it")
-    try:
-        stored_mesh = from_arrays(data["mesh_vertices"], data["mesh_faces"], name=meta["mesh_name"])
-        stored_mesh.source_hash = meta["mesh_hash"]
-        cfg = RefsConfig(**meta["config"])
-        feats: dict[str, dict[str, np.ndarray]] = {}
-        for k, v in data.items():
-            if k.startswith("feat/"):
-                key, _, field_name = k[5:].rpartition("/")
-                feats.setdefault(key, {})[field_name] = v
-        return ReferenceSet(
-            mesh=mesh or stored_mesh, config=cfg, poses=data["poses"], Ks=data["Ks"], K_start=data["K_start"],
-            canonical=data["canonical"], depth=_dequantise_depth(data),
-            normals=_unit(data["normals_q"].astype(np.float32) / 127.0),
-            encodings={k[4:]: v for k, v in data.items() if k.startswith("enc/")},
-            features=feats, build_seconds=float(meta.get("build_seconds", 0.0)),
-            templates=_templates_from(data),
-        )
-    except (KeyError, TypeError) as exc:
-        raise ReferenceSetError(f"{path} is missing data ({exc}): rebuild it") from exc
-    except PixieError as exc:  # an invalid stored config or mesh
-        raise ReferenceSetError(f"{path} holds invalid data ({exc}): rebuild it") from exc
-
-
-def _templates_from(data: dict) -> dict[str, np.ndarray] | None:
-    """Contour-template arrays stored under 'tpl/' keys (pixie.references.templates.ContourTemplates.from_arrays reads them)."""
-    return {k[4:]: v for k, v in data.items() if k.startswith("tpl/")} or None
-
-
-def _quantise_depth(depth: np.ndarray) -> dict[str, np.ndarray]:
-    """Depth as uint16 steps between each view's near and far z (0 = background); error < 0.01 mm."""
-    mask = depth > 0
-    lo = np.where(mask.any((1, 2)), np.where(mask, depth, np.inf).min((1, 2)), 0).astype(np.float64)
-    hi = np.where(mask.any((1, 2)), depth.max((1, 2)), 1).astype(np.float64)
-    step = np.maximum(hi - lo, 1e-6) / 65534.0
-    q = np.round((depth - lo[:, None, None]) / step[:, None, None]) + 1
-    return {"depth_q": np.where(mask, q, 0).astype(np.uint16), "depth_lo": lo, "depth_step": step}
-
-
-def _dequantise_depth(data: dict) -> np.ndarray:
-    q = data["depth_q"].astype(np.float64)
-    d = data["depth_lo"][:, None, None] + (q - 1) * data["depth_step"][:, None, None]
-    return np.where(q > 0, d, 0).astype(np.float32)
-
-
-def _unit(n: np.ndarray) -> np.ndarray:
-    norm = np.linalg.norm(n, axis=-1, keepdims=True)
-    return np.where(norm > 0, n / np.maximum(norm, 1e-12), 0).astype(np.float32)
 
 
 def encoding_images(refs: ReferenceSet, name: str) -> np.ndarray:

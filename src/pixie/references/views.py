@@ -8,7 +8,7 @@ from __future__ import annotations
 
 import numpy as np
 
-from pixie.geometry.camera import look_at, make_K, make_T, rot_z
+from pixie.geometry.camera import crop_K, look_at, make_K, make_T, rot_z
 
 # Box-aligned viewing directions (camera position relative to the centre, object frame) and up vectors.
 CANONICAL_DIRECTIONS = np.array(
@@ -94,20 +94,6 @@ def square_crop_K(
     side = max(float((hi - lo).max()) * pad, 1.0)
     x0, y0 = centre[0] - side / 2, centre[1] - side / 2
     return crop_K(K, x0, y0, side, size), np.array([x0, y0, side, size / side])
-
-
-def crop_K(K: np.ndarray, x0: float, y0: float, side: float, size: int) -> np.ndarray:
-    """Intrinsics after cropping the square [x0, x0+side) x [y0, y0+side) and resizing it to ``size``.
-
-    Uses the pixel-centre convention: the crop's pixel i covers original [x0 + i*s, x0 + (i+1)*s).
-    """
-    s = size / side
-    return make_K(
-        K[0, 0] * s,
-        K[1, 1] * s,
-        (K[0, 2] + 0.5 - x0) * s - 0.5,
-        (K[1, 2] + 0.5 - y0) * s - 0.5,
-    )
 
 
 def start_K(size: int, focal_factor: float) -> np.ndarray:

@@ -30,7 +30,8 @@ from pixie.pipeline.query import square_crop
 from pixie.geometry.render import Renderer, composite
 from pixie.synth import photo
 from pixie.synth.parts import random_part
-from pixie.references.views import camera_distance, crop_K, square_crop_K, start_K
+from pixie.geometry.camera import crop_K
+from pixie.references.views import camera_distance, square_crop_K, start_K
 
 ENCODINGS = ("shade3_edges", "depth", "normal")
 IMAGE_W, IMAGE_H = 640, 480

@@ -1,0 +1,211 @@
+"""Reference sets on disk: ``.npz`` files written atomically, read back, and upgraded once with contour templates.
+
+A file holds a format version (``FORMAT_VERSION``), the mesh's content hash and the build config; a stale, foreign
+or corrupt file raises :class:`ReferenceSetError`. Depth and normals are stored quantised (uint16 steps per view,
+int8) and decoded on first access (:class:`pixie.references.set.ReferenceSet` fields), so a load does not pay for
+arrays inference never reads. Contour templates are stored under ``tpl/`` keys with their own version
+(``TEMPLATES_VERSION``); :func:`ensure_templates` builds them for a set that lacks them (a file written before they
+were stored, or other ``shape.*`` settings) and saves them back into a writable file, once.
+"""
+
+from __future__ import annotations
+
+import json
+import logging
+import os
+import time
+import zipfile
+import zlib
+from pathlib import Path
+from typing import Callable
+
+import numpy as np
+
+from pixie._version import __version__
+from pixie.config import RefsConfig, ShapeConfig
+from pixie.errors import OutputError, PixieError, ReferenceSetError
+from pixie.geometry.mesh import Mesh, from_arrays
+from pixie.paths import output_file, write_atomic
+from pixie.references.set import ReferenceSet, _Decoded, _build_templates
+from pixie.references.templates import ContourTemplates
+
+FORMAT_VERSION = 1
+TEMPLATES_VERSION = 1  # contour templates stored under tpl/ (absent or another version: rebuilt, see ensure_templates)
+
+log = logging.getLogger(__name__)
+
+
+def templates_fit(refs: ReferenceSet, shape: ShapeConfig) -> bool:
+    """The set holds contour templates built with ``shape``'s views, size and points."""
+    if not refs.templates:
+        return False
+    tpl = ContourTemplates.from_arrays(refs.templates)
+    return tpl.n_views == shape.views and tpl.size == shape.size and tpl.n_points == shape.points
+
+
+def ensure_templates(refs: ReferenceSet, shape: ShapeConfig, save: bool = True) -> bool:
+    """Give ``refs`` the contour templates of ``shape`` (when enabled) if it lacks them; True when they were built.
+
+    A set loaded from a file (``refs.source_path``) gets them saved back into that file, atomically, when
+    ``save`` and the file and its folder are writable, so that the next load has them (a one-time upgrade of a
+    set written before templates were stored). Either way one INFO message says what happened.
+    """
+    if not shape.enabled or templates_fit(refs, shape):
+        return False
+    t0, had = time.perf_counter(), refs.templates is not None
+    refs.templates = _build_templates(refs.mesh, shape).to_arrays()
+    what = (f"contour templates ({shape.views} views at {shape.size} px) built in {time.perf_counter() - t0:.1f} s: "
+            f"the set {'had none that fit shape.*' if had else 'had none'}")
+    path = refs.source_path
+    if save and path is not None and os.access(path, os.W_OK) and os.access(path.parent, os.W_OK):
+        save_reference_set(refs, path)
+        log.info("%s: %s; saved into it (upgraded once)", path, what)
+    else:
+        log.info("%s: %s; kept in memory only (%s)", path or "reference set", what,
+                 "not writable" if path is not None else "not from a file")
+    return True
+
+
+# ----------------------------------------------------------------------------------------- I/O
+
+
+def check_output_path(path: str | Path, force: bool = True) -> Path:
+    """The path a set will be written to, exactly as given (no suffix added); its folder is created and must
+    be writable; an existing file is refused unless ``force`` (:func:`pixie.paths.output_file`)."""
+    try:
+        return output_file(path, force=force, what="reference set")
+    except OutputError as exc:
+        raise ReferenceSetError(str(exc)) from exc
+
+
+def save_reference_set(refs: ReferenceSet, path: str | Path) -> Path:
+    """Write ``refs`` to ``path`` (.npz) atomically: a killed write leaves no partial file."""
+    path = check_output_path(path)
+    meta = {
+        "format_version": FORMAT_VERSION,
+        "pixie_version": __version__,
+        "mesh_name": refs.mesh.name,
+        "mesh_hash": refs.mesh.source_hash,
+        "config": refs.config.__dict__,
+        "build_seconds": refs.build_seconds,
+        "encodings": list(refs.encodings),
+        "features": sorted(refs.features),
+    }
+    arrays = {
+        "meta": np.frombuffer(json.dumps(meta).encode(), np.uint8),
+        "poses": refs.poses, "Ks": refs.Ks, "K_start": refs.K_start, "canonical": refs.canonical,
+        **(_stored_arrays(refs, "depth") or _quantise_depth(refs.depth)),
+        **(_stored_arrays(refs, "normals") or {"normals_q": np.round(refs.normals * 127.0).astype(np.int8)}),
+        "mesh_vertices": refs.mesh.vertices, "mesh_faces": refs.mesh.faces.astype(np.int32),
+    }
+    if refs.config.store_rotated_encodings:  # roll-0 encodings are re-derived from D and N on load
+        for name, img in refs.encodings.items():
+            arrays[f"enc/{name}"] = img
+    for key, packed in refs.features.items():
+        for k, v in packed.items():
+            arrays[f"feat/{key}/{k}"] = v
+    if refs.templates is not None:
+        meta["templates_version"] = TEMPLATES_VERSION
+        arrays["meta"] = np.frombuffer(json.dumps(meta).encode(), np.uint8)
+        arrays.update({f"tpl/{k}": np.asarray(v) for k, v in refs.templates.items()})
+    # atomic (a killed write leaves no partial file) and 0644; a file object, else numpy appends '.npz'
+    return write_atomic(path, lambda fh: np.savez_compressed(fh, **arrays))
+
+
+def load_reference_set(path: str | Path, mesh: Mesh | None = None) -> ReferenceSet:
+    """Read a reference set; with ``mesh`` given, refuse a set built from another mesh file."""
+    if not isinstance(path, (str, os.PathLike)):
+        raise ReferenceSetError(f"reference set path must be a str or Path, got {type(path).__name__}")
+    path = Path(path)
+    if not path.is_file():
+        raise ReferenceSetError(f"reference set not found: {path} (build it with `pixie refs build MESH -o {path}`)")
+    try:
+        with np.load(path, allow_pickle=False) as z:
+            data = {k: z[k] for k in z.files}
+    except (zipfile.BadZipFile, zlib.error, ValueError, OSError, EOFError) as exc:
+        raise ReferenceSetError(f"reference set {path} is corrupt or not a pixie file: {exc}") from exc
+    if "meta" not in data:
+        raise ReferenceSetError(f"{path} is not a pixie reference set (no metadata)")
+    try:
+        meta = json.loads(data["meta"].tobytes().decode())
+    except ValueError as exc:
+        raise ReferenceSetError(f"{path}: unreadable metadata") from exc
+    if not isinstance(meta, dict):
+        raise ReferenceSetError(f"{path}: unreadable metadata")
+    if meta.get("format_version") != FORMAT_VERSION:
+        raise ReferenceSetError(
+            f"{path} has format version {meta.get('format_version')}, this pixie reads {FORMAT_VERSION}: rebuild it"
+        )
+    if mesh is not None and mesh.source_hash != meta["mesh_hash"]:
+        raise ReferenceSetError(f"{path} was built from another mesh ({meta['mesh_name']}, hash differs): rebuild it")
+    try:
+        stored_mesh = from_arrays(data["mesh_vertices"], data["mesh_faces"], name=meta["mesh_name"])
+        stored_mesh.source_hash = meta["mesh_hash"]
+        cfg = RefsConfig(**meta["config"])
+        feats: dict[str, dict[str, np.ndarray]] = {}
+        for k, v in data.items():
+            if k.startswith("feat/"):
+                key, _, field_name = k[5:].rpartition("/")
+                feats.setdefault(key, {})[field_name] = v
+        return ReferenceSet(
+            mesh=mesh or stored_mesh, config=cfg, poses=data["poses"], Ks=data["Ks"], K_start=data["K_start"],
+            canonical=data["canonical"], depth=_Lazy(_dequantise_depth, data, data["depth_q"].shape),
+            normals=_Lazy(_dequantise_normals, data, data["normals_q"].shape),
+            encodings={k[4:]: v for k, v in data.items() if k.startswith("enc/")},
+            features=feats, build_seconds=float(meta.get("build_seconds", 0.0)),
+            templates=_templates_from(data) if meta.get("templates_version") == TEMPLATES_VERSION else None,
+            source_path=path,
+        )
+    except (KeyError, TypeError) as exc:
+        raise ReferenceSetError(f"{path} is missing data ({exc}): rebuild it") from exc
+    except PixieError as exc:  # an invalid stored config or mesh
+        raise ReferenceSetError(f"{path} holds invalid data ({exc}): rebuild it") from exc
+
+
+def _templates_from(data: dict) -> dict[str, np.ndarray] | None:
+    """Contour-template arrays stored under 'tpl/' keys (pixie.references.templates.ContourTemplates.from_arrays reads them)."""
+    return {k[4:]: v for k, v in data.items() if k.startswith("tpl/")} or None
+
+
+def _quantise_depth(depth: np.ndarray) -> dict[str, np.ndarray]:
+    """Depth as uint16 steps between each view's near and far z (0 = background); error < 0.01 mm."""
+    mask = depth > 0
+    lo = np.where(mask.any((1, 2)), np.where(mask, depth, np.inf).min((1, 2)), 0).astype(np.float64)
+    hi = np.where(mask.any((1, 2)), depth.max((1, 2)), 1).astype(np.float64)
+    step = np.maximum(hi - lo, 1e-6) / 65534.0
+    q = np.round((depth - lo[:, None, None]) / step[:, None, None]) + 1
+    return {"depth_q": np.where(mask, q, 0).astype(np.uint16), "depth_lo": lo, "depth_step": step}
+
+
+def _dequantise_depth(data: dict) -> np.ndarray:
+    q = data["depth_q"].astype(np.float64)
+    d = data["depth_lo"][:, None, None] + (q - 1) * data["depth_step"][:, None, None]
+    return np.where(q > 0, d, 0).astype(np.float32)
+
+
+class _Lazy:
+    """``decode(data)`` deferred (picklable: a module-level function and a dict of arrays), with its shape."""
+
+    def __init__(self, decode: Callable[[dict], np.ndarray], data: dict, shape: tuple):
+        self.decode, self.data, self.shape = decode, {k: data[k] for k in _LAZY_KEYS[decode.__name__]}, tuple(shape)
+
+    def __call__(self) -> np.ndarray:
+        return self.decode(self.data)
+
+
+def _stored_arrays(refs: ReferenceSet, name: str) -> dict | None:
+    """The arrays field ``name`` was loaded from, when it was not replaced since (saved back bit for bit)."""
+    stored = _Decoded.stored(refs, name)
+    return dict(stored.data) if isinstance(stored, _Lazy) else None
+
+
+def _dequantise_normals(data: dict) -> np.ndarray:
+    return _unit(data["normals_q"].astype(np.float32) / 127.0)
+
+
+_LAZY_KEYS = {"_dequantise_depth": ("depth_q", "depth_lo", "depth_step"), "_dequantise_normals": ("normals_q",)}
+
+
+def _unit(n: np.ndarray) -> np.ndarray:
+    norm = np.linalg.norm(n, axis=-1, keepdims=True)
+    return np.where(norm > 0, n / np.maximum(norm, 1e-12), 0).astype(np.float32)
