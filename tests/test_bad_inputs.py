@@ -401,7 +401,7 @@ def _fast_cfg():
     from pixie.config import PixieConfig
 
     cfg = PixieConfig()
-    for item in ("refine.render_iters=0", "match.matcher=sift-nn", "match.max_keypoints=128"):
+    for item in ("refine.render_iters=0", "match.matcher=sift-nn", "match.max_keypoints=128", "shape.enabled=false"):
         cfg.set(*item.split("="))
     return cfg
 
@@ -745,8 +745,16 @@ def test_run_bad_objects(work, lmo_dir, tmp_path):
 
 def _spawn(*argv) -> subprocess.Popen:
     env = dict(os.environ, PYTHONPATH=str(SRC), PYTHONUNBUFFERED="1", OMP_NUM_THREADS="1")
-    return subprocess.Popen([sys.executable, "-m", "pixie.app.cli", *map(str, argv)], env=env,
-                            stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True, start_new_session=True)
+    # SIGINT back to its default in the child: a test runner started as `nohup ... &` ignores it, and an ignored
+    # signal is inherited (Python then installs no KeyboardInterrupt handler)
+    return subprocess.Popen([sys.executable, "-m", "pixie", *map(str, argv)], env=env,
+                            stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True, start_new_session=True,
+                            preexec_fn=_default_signals)
+
+
+def _default_signals() -> None:
+    for sig in (signal.SIGINT, signal.SIGTERM):
+        signal.signal(sig, signal.SIG_DFL)
 
 
 def _children(pid: int) -> list[int]:
@@ -991,13 +999,13 @@ def test_estimator_flags_a_pose_that_contradicts_its_box(work, plaus):
     q = est.prepare(img, K, bbox=[int(v) for v in work["box"].split(",")])
     far = T.copy()
     far[:3, 3] *= 20.0
-    good = est.result([Hypothesis(T, 5.0, 20, 30, 0, 0, 0.0, 1.0)], {}, q)
-    bad = est.result([Hypothesis(far, 5.0, 20, 30, 0, 0, 0.0, 1.0)], {}, q)
+    good = est.result([Hypothesis(T_cam_from_obj=T, score=5.0, n_inliers=20, n_matches=30, view=0, roll=0, rot_to_ref_deg=0.0, box_iou=1.0)], {}, q)
+    bad = est.result([Hypothesis(T_cam_from_obj=far, score=5.0, n_inliers=20, n_matches=30, view=0, roll=0, rot_to_ref_deg=0.0, box_iou=1.0)], {}, q)
     assert not good.failed and good.message == "ok"
     assert bad.failed and bad.message.startswith("implausible") and "too far" in bad.message
     assert bad.T_cam_from_obj is far  # the best guess is still returned
     blank = est.prepare(np.full_like(img, 128), K, bbox=[int(v) for v in work["box"].split(",")])
-    flat = est.result([Hypothesis(T, 5.0, 20, 30, 0, 0, 0.0, 1.0)], {}, blank)
+    flat = est.result([Hypothesis(T_cam_from_obj=T, score=5.0, n_inliers=20, n_matches=30, view=0, roll=0, rot_to_ref_deg=0.0, box_iou=1.0)], {}, blank)
     assert flat.failed and "no contrast" in flat.message
 
 

@@ -55,3 +55,12 @@ def test_bad_yaml_files(tmp_path):
     (tmp_path / "broken.yaml").write_text("refs: [1, 2\n")
     with pytest.raises(ConfigError, match="cannot read config"):
         PixieConfig.from_yaml(tmp_path / "broken.yaml")
+
+
+@pytest.mark.parametrize("override", ["shape.views=abc", "shape.views=0", "shape.enabled=maybe", "shape.w_edge=-1",
+                                      "shape.size=8", "shape.rolls=0"])
+def test_shape_section_is_validated_like_every_other(override):
+    from pixie.config import PixieConfig
+
+    with pytest.raises(ConfigError, match=override.split("=")[0].replace(".", r"\.")):
+        PixieConfig().apply_overrides([override])

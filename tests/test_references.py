@@ -23,7 +23,7 @@ from pixie.geometry.mesh import from_arrays
 from pixie.references.set import add_features, build_reference_set, encoding_images, keypoint_xyz_from_depth
 from pixie.references.store import FORMAT_VERSION, load_reference_set, save_reference_set
 from pixie.geometry.render import Renderer
-from pixie.references.views import roll, square_crop_K, start_K
+from pixie.references.views import roll, square_crop_K
 
 pytestmark = pytest.mark.usefixtures("one_torch_thread")
 
@@ -464,3 +464,36 @@ def test_killed_save_keeps_the_previous_set(refs_plain, tmp_path):
     back = load_reference_set(target, mesh=refs_plain.mesh)
     np.testing.assert_array_equal(back.poses, refs_plain.poses)
     assert _leftovers(tmp_path, target) == []
+
+
+def test_templates_are_stored_loaded_and_an_old_set_upgraded_once(proc_mesh, tmp_path, caplog):
+    """The set owns its contour templates: built with it, saved, loaded; a set without them (an older file) gets
+    them once, saved back atomically, with one INFO message, and the next load needs no rebuild."""
+    import logging
+
+    from pixie.config import ShapeConfig
+    from pixie.references.store import TEMPLATES_VERSION, ensure_templates, templates_fit
+
+    shape = ShapeConfig(views=12, size=32, points=16)
+    cfg = RefsConfig(n_fibonacci=4, rotations=1, size=32, encodings=["depth"])
+    refs = build_reference_set(proc_mesh, cfg, shape=shape)
+    assert templates_fit(refs, shape) and not templates_fit(refs, ShapeConfig())
+    loaded = load_reference_set(save_reference_set(refs, tmp_path / "new.npz"))
+    assert json.loads(np.load(tmp_path / "new.npz")["meta"].tobytes())["templates_version"] == TEMPLATES_VERSION
+    assert templates_fit(loaded, shape) and not ensure_templates(loaded, shape)
+    assert build_reference_set(proc_mesh, cfg).templates is None  # a RefsConfig alone: no shape cues asked for
+    refs.templates = None
+    old = tmp_path / "old.npz"
+    save_reference_set(refs, old)
+    before = load_reference_set(old)
+    assert before.templates is None
+    with caplog.at_level(logging.INFO, logger="pixie.references.store"):
+        assert ensure_templates(before, shape)
+    assert "upgraded once" in caplog.text
+    again = load_reference_set(old)
+    assert templates_fit(again, shape) and not ensure_templates(again, shape)
+    for k, v in loaded.templates.items():
+        if k != "build_seconds":  # the same templates, built again
+            np.testing.assert_array_equal(again.templates[k], v)
+    np.testing.assert_array_equal(again.depth, loaded.depth)  # depth and normals saved back bit for bit
+    np.testing.assert_array_equal(again.normals, loaded.normals)

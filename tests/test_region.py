@@ -5,7 +5,6 @@ from __future__ import annotations
 
 import cv2
 import numpy as np
-import pytest
 
 from pixie.geometry.camera import make_K, make_T
 from pixie.cues.region import band, colour_index, polygon_scores, refine_pose, separation

@@ -10,7 +10,7 @@ The public API is these few names (everything else is importable from its module
 
     mesh = pixie.load_mesh("part.ply")                       # units auto-detected (mm unless under 2 units across)
     cfg = pixie.PixieConfig.from_preset("default")
-    refs = pixie.build_reference_set(mesh, cfg.refs, matcher=make_matcher(cfg))  # or pixie.load_reference_set(path, mesh)
+    refs = pixie.build_reference_set(mesh, cfg.refs, matcher=make_matcher(cfg), shape=cfg.shape)  # or load_reference_set
     est = pixie.PoseEstimator(refs, cfg)
     result = est.estimate(pixie.load_image("photo.png"), K, bbox=(x, y, w, h))
     result.T_cam_from_obj, result.failed                       # every error is a pixie.PixieError

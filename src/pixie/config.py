@@ -56,6 +56,21 @@ RANGES: dict[str, tuple[float | None, float | None, bool]] = {
     "refine.render_hypotheses": (0, None, True),
     "refine.render_seeds": (0, None, True),
     "refine.render_window": (0, 10, False),
+    "shape.views": (1, 100_000, True),
+    "shape.size": (16, 4096, True),
+    "shape.points": (1, 100_000, True),
+    "shape.rolls": (1, 360, True),
+    "shape.crease_weight": (0, None, True),
+    "shape.min_mag": (0, None, True),
+    "shape.region_k": (1, None, True),
+    "shape.region_weight": (0, None, True),
+    "shape.candidates": (0, None, True),
+    "shape.verify_matcher": (0, None, True),
+    "shape.w_match": (0, None, True),
+    "shape.w_edge": (0, None, True),
+    "shape.w_region": (0, None, True),
+    "shape.refine_hypotheses": (0, None, True),
+    "shape.refine_box_px": (8, 4096, True),
 }
 
 
@@ -240,12 +255,9 @@ def _read_yaml(path: str | Path) -> dict[str, Any]:
     if data is not None and not isinstance(data, dict):
         raise ConfigError(f"config {path} must be a mapping of sections, got {type(data).__name__}")
     return data or {}
-_SECTION_NAMES = {RefsConfig: "refs", QueryConfig: "query", MatchConfig: "match", PoseConfig: "pose",
-                  RefineConfig: "refine"}
-
 
 @dataclass
-class ShapeConfig:
+class ShapeConfig(_Section):
     """Shape cues beside the matcher (pixie.cues.shape): contour templates, edge + region verification, region refinement.
 
     Measured on LM-O dev (bench/RESULTS.md, "Shape cues"): fusing them with the matcher raised ADD(-S)<0.1d on 96
@@ -272,6 +284,18 @@ class ShapeConfig:
     before_render: bool = False  # verify before render-at-estimate refinement (which then refines the best fused)
     refine_hypotheses: int = 0  # best verified hypotheses refined by region-based refinement (pixie.cues.region); 0: off
     refine_box_px: float = 96.0  # refinement crop: the box's longer side in px
+
+
+def parse_override(item: str) -> tuple[str, str]:
+    """The one reader of a ``section.key=value`` override (``--set``, study variants): ``(key, value text)``."""
+    if not isinstance(item, str) or "=" not in item:
+        raise ConfigError(f"override {item!r} must look like section.key=value")
+    k, v = item.split("=", 1)
+    return k.strip(), v.strip()
+
+
+_SECTION_NAMES = {RefsConfig: "refs", QueryConfig: "query", MatchConfig: "match", PoseConfig: "pose",
+                  RefineConfig: "refine", ShapeConfig: "shape"}
 
 
 @dataclass
@@ -352,8 +376,5 @@ class PixieConfig:
 
     def apply_overrides(self, overrides: list[str] | None) -> "PixieConfig":
         for item in overrides or []:
-            if "=" not in item:
-                raise ConfigError(f"override {item!r} must look like section.key=value")
-            k, v = item.split("=", 1)
-            self.set(k.strip(), v.strip())
+            self.set(*parse_override(item))
         return self

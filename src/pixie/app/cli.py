@@ -24,7 +24,7 @@ import numpy as np
 from pixie._version import __version__
 from pixie.app.batch import folder_items, read_manifest, run_batch
 from pixie.geometry.camera import check_image_K, parse_K, parse_numbers
-from pixie.config import DEFAULT_PRESET, PixieConfig, preset_about, preset_names
+from pixie.config import DEFAULT_PRESET, PixieConfig, parse_override, preset_about, preset_names
 from pixie.app.demo import main as demo_main
 from pixie.references.encode import check_encodings
 from pixie.errors import DatasetError, PixieError, ReferenceSetError, UsageError
@@ -183,7 +183,7 @@ def _matcher_for(refs, cfg: PixieConfig, args: argparse.Namespace) -> None:
         return
     preset = PixieConfig.from_preset(getattr(args, "preset", None) or DEFAULT_PRESET)
     asked = cfg.match.matcher != preset.match.matcher or any(
-        o.split("=", 1)[0].strip() == "match.matcher" for o in args.set or [])
+        parse_override(o)[0] == "match.matcher" for o in args.set or [])
     if asked:
         raise ReferenceSetError(
             f"{args.refs or 'the reference set'} holds features of {', '.join(stored)}, not of "

@@ -6,7 +6,6 @@ from __future__ import annotations
 from dataclasses import dataclass
 
 import numpy as np
-from scipy.spatial import cKDTree
 
 from pixie.eval import pose_error as M
 from pixie.eval.datasets import BopDataset, is_symmetric, symmetry_transforms
@@ -31,6 +30,8 @@ class ObjectData:
     @property
     def tree(self):
         if self._tree is None:
+            from scipy.spatial import cKDTree  # a slow import (~0.2 s) that `pixie estimate` never needs
+
             self._tree = cKDTree(self.add_pts)
         return self._tree
 

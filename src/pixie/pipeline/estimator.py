@@ -29,6 +29,7 @@ import copy
 import logging
 import time
 from dataclasses import dataclass
+from typing import NamedTuple
 
 import numpy as np
 
@@ -63,8 +64,22 @@ log = logging.getLogger(__name__)
 
 MIN_CROP_CONTRAST = 2.0  # grey-level std of the query crop below which nothing in it can be matched
 
-# (view, roll) -> (pts2d (N, 2) photo px, pts3d (N, 3) object mm, similarities (N,)), float64
-Correspondences = dict[tuple[int, int], tuple[np.ndarray, np.ndarray, np.ndarray]]
+
+class Correspondence(NamedTuple):
+    """2D-3D correspondences of the query with one reference (view, roll), float64 (a named tuple: unpacks
+    as ``pts2d, pts3d, sims``)."""
+
+    pts2d: np.ndarray  # (N, 2) photo px
+    pts3d: np.ndarray  # (N, 3) object mm
+    sims: np.ndarray  # (N,) matcher similarities
+
+
+Correspondences = dict[tuple[int, int], Correspondence]  # (view, roll) -> its correspondences
+
+
+def typed_correspondences(corr: dict) -> Correspondences:
+    """``corr`` with every value a :class:`Correspondence` (plain ``(pts2d, pts3d, sims)`` tuples accepted)."""
+    return {k: c if isinstance(c, Correspondence) else Correspondence(*c) for k, c in corr.items()}
 
 
 @dataclass
@@ -172,7 +187,7 @@ class PoseEstimator:
 
         t = time.perf_counter()
         corr = self.match(q)
-        q.background = background_similarity([c[2] for c in corr.values()])
+        q.background = background_similarity([c.sims for c in corr.values()])
         timings["match"] = time.perf_counter() - t
 
         t = time.perf_counter()
@@ -193,7 +208,7 @@ class PoseEstimator:
         if shape_first:
             t = time.perf_counter()
             hyps = self.shape_verify(q, hyps)
-            timings["verify"] += time.perf_counter() - t
+            timings["verify"] = timings.get("verify", 0.0) + time.perf_counter() - t
         elif self._shape is not None:
             hyps = self.shape_stage(q, hyps, timings)
         timings["total"] = time.perf_counter() - t_all
@@ -267,15 +282,17 @@ class PoseEstimator:
                     p2 = crop.to_original(p2)
                     if (v, r) in out:
                         a2, a3, a4 = out[(v, r)]
-                        out[(v, r)] = (np.concatenate([a2, p2]), np.concatenate([a3, p3]), np.concatenate([a4, sc]))
+                        out[(v, r)] = Correspondence(np.concatenate([a2, p2]), np.concatenate([a3, p3]),
+                                                     np.concatenate([a4, sc]))
                     else:
-                        out[(v, r)] = (p2, p3, sc)
+                        out[(v, r)] = Correspondence(p2, p3, sc)
         return out
 
     def rank_pairs(self, q: Query, corr: Correspondences) -> list[tuple[int, int]]:
         """The (view, roll) pairs of ``corr``, best supported first (``pose.candidate_ranking``)."""
         rk = self.cfg.pose.candidate_ranking
-        return sorted(corr, key=lambda k: -pair_rank_score(corr[k][2], q.background, rk))
+        corr = typed_correspondences(corr)
+        return sorted(corr, key=lambda k: -pair_rank_score(corr[k].sims, q.background, rk))
 
     def solve(self, q: Query, corr: Correspondences, px_scale: float | None = None) -> list[Hypothesis]:
         """PnP + RANSAC on the ``pose.top_k_views`` best-ranked views (one roll each), scored, best first.
@@ -284,6 +301,7 @@ class PoseEstimator:
         """
         p = self.cfg.pose
         thr = p.reprojection_px * (self.px_scale(q.crops[0]) if px_scale is None else px_scale)
+        corr = typed_correspondences(corr)
         ranked = [(k, corr[k]) for k in self.rank_pairs(q, corr)]
         if p.views == "canonical":
             ranked = [kv for kv in ranked if self.refs.canonical[kv[0][0]]]
@@ -297,10 +315,10 @@ class PoseEstimator:
             if len(cands) >= p.top_k_views:
                 break
         if p.mode == "concat" and cands:
-            p2 = np.concatenate([c[0] for _, c in cands])
-            p3 = np.concatenate([c[1] for _, c in cands])
-            sc = np.concatenate([c[2] for _, c in cands])
-            cands = [(cands[0][0], (p2, p3, sc))]
+            p2 = np.concatenate([c.pts2d for _, c in cands])
+            p3 = np.concatenate([c.pts3d for _, c in cands])
+            sc = np.concatenate([c.sims for _, c in cands])
+            cands = [(cands[0][0], Correspondence(p2, p3, sc))]
         elif p.mode != "per_view":
             raise ConfigError(f"pose.mode must be 'per_view' or 'concat', got {p.mode!r}")
         hyps = []
@@ -325,7 +343,9 @@ class PoseEstimator:
         if self.cfg.pose.depth_from_bbox:
             T = depth_from_box(T, q.K, self.box_points, q.box)
         score = hypothesis_score(self.cfg.pose.scoring, res.n_inliers, s_in, q.background, rot, iou)
-        return Hypothesis(T, score, res.n_inliers, res.n_correspondences, v, r, rot, iou, sim_sum, sim_mean)
+        return Hypothesis(T_cam_from_obj=T, score=score, match_score=score, n_inliers=res.n_inliers,
+                          n_matches=res.n_correspondences, view=v, roll=r, rot_to_ref_deg=rot, box_iou=iou,
+                          sim_sum=sim_sum, sim_mean=sim_mean)
 
     def nearest_view(self, T: np.ndarray) -> tuple[int, int]:
         """The paper's view selection: the view whose optical axis is closest, and its closest roll."""
@@ -384,8 +404,8 @@ class PoseEstimator:
                 scs.append(sc)
         if not p2s:
             return hyps
-        new = self.solve(q, {(v, r): (np.concatenate(p2s), np.concatenate(p3s), np.concatenate(scs))},
-                         self.px_scale(crop))
+        merged = Correspondence(np.concatenate(p2s), np.concatenate(p3s), np.concatenate(scs))
+        new = self.solve(q, {(v, r): merged}, self.px_scale(crop))
         for h in new:
             h.source = "recrop"
         return sorted(hyps + new, key=lambda h: -h.score)
@@ -436,7 +456,8 @@ class PoseEstimator:
             pool[0].matcher_best = True
         for c in cands:
             T = depth_from_box(c.T_cam_from_obj, K, self.box_points, box) if self.cfg.pose.depth_from_bbox else c.T_cam_from_obj
-            pool.append(Hypothesis(T, 0.0, 0, 0, -1, -1, 0.0, box_iou(projected_box(T, K, self.box_points), box),
+            pool.append(Hypothesis(T_cam_from_obj=T, score=0.0, n_inliers=0, n_matches=0, view=-1, roll=-1,
+                                   rot_to_ref_deg=0.0, box_iou=box_iou(projected_box(T, K, self.box_points), box),
                                    source="edges"))
         pool = self.shape_verify(q, pool)
         timings["verify"] = time.perf_counter() - t
@@ -444,9 +465,11 @@ class PoseEstimator:
             t = time.perf_counter()
             for h in self.distinct(pool, sc.refine_hypotheses):
                 res = cues.refine(q.image, K, h.T_cam_from_obj, box, sc.refine_box_px)
-                pool.append(Hypothesis(res.T_cam_from_obj, h.match_score, h.n_inliers, h.n_matches, h.view, h.roll,
-                                       0.0, box_iou(projected_box(res.T_cam_from_obj, K, self.box_points), box),
-                                       h.sim_sum, h.sim_mean, source="region"))
+                iou = box_iou(projected_box(res.T_cam_from_obj, K, self.box_points), box)
+                pool.append(Hypothesis(T_cam_from_obj=res.T_cam_from_obj, score=h.match_score, match_score=h.match_score,
+                                       n_inliers=h.n_inliers, n_matches=h.n_matches, view=h.view, roll=h.roll,
+                                       rot_to_ref_deg=0.0, box_iou=iou, sim_sum=h.sim_sum, sim_mean=h.sim_mean,
+                                       source="region"))
             pool = self.shape_verify(q, pool)
             timings["region_refine"] = time.perf_counter() - t
         return pool
@@ -460,7 +483,8 @@ class PoseEstimator:
             h.match_score = h.score if h.source != "edges" else 0.0
             h.terms = self._shape.verify_terms(q.edges, q.K, h.T_cam_from_obj)
             h.edge, h.region = h.terms["edge"], h.terms["region"]
-            h.score = fused_score(sc, h.match_score, q.best_match, h.edge, h.region)
+            h.fused = fused_score(sc, h.match_score, q.best_match, h.edge, h.region)
+            h.score = h.fused
         return sorted(hyps, key=lambda h: -h.score)
 
     @staticmethod

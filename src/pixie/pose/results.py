@@ -36,9 +36,14 @@ def no_box_message(box: str, mask: str, whole: str) -> str:
 NO_BOX_MESSAGE = no_box_message("bbox=(x, y, w, h)", "mask=... (boolean array or mask image)", "bbox=(0, 0, width, height)")
 
 
-@dataclass
+@dataclass(kw_only=True)
 class Hypothesis:
-    """One candidate pose: from reference (view, roll), with its PnP support."""
+    """One candidate pose: from reference (view, roll), with its PnP support; built with keywords only.
+
+    Every score is its own field and kept: ``match_score`` (the matcher's: PnP support, :data:`SCORE_NOTE`),
+    ``edge`` and ``region`` (shape-cue agreement), ``fused`` (their fusion, ``pixie.cues.shape.fused_score``).
+    ``score`` is the ranking score: the matcher's until shape verification, then the fused one.
+    """
 
     T_cam_from_obj: np.ndarray
     score: float
@@ -53,9 +58,10 @@ class Hypothesis:
     source: str = "reference"  # 'reference' (first pass), 'view_selection', 'recrop' or 'render' (render-at-estimate)
     confidence: float = 0.0  # set for returned hypotheses: score / (score + the best other distinct score)
     # shape cues (config.shape): source may also be 'edges' (contour template) or 'region' (region-refined)
-    match_score: float = 0.0  # the matcher's score before shape verification replaced ``score``
+    match_score: float = 0.0  # the matcher's score (kept when shape verification sets ``score`` to ``fused``)
     edge: float = float("nan")  # edge agreement (pixie.cues.shape), when verified
     region: float = float("nan")  # region agreement, when verified
+    fused: float = float("nan")  # the fused verification score (the ranking ``score`` once verified)
     terms: dict = field(default_factory=dict)  # every verification term (pixie.cues.shape.ShapeCues.verify_terms)
     matcher_best: bool = False  # the matcher's own choice (what the pipeline returns without shape cues)
 

@@ -202,11 +202,12 @@ def build_reference_set(
         Processes that render and encode in parallel (views are independent); features are
         extracted in this process while the workers render the next views.
     shape : ShapeConfig, optional
-        The shape cues' settings: their contour templates are built when ``shape.enabled`` (default: the
-        ``shape`` section of a PixieConfig ``config``, else ``ShapeConfig()``).
+        The shape cues' settings: their contour templates are built (and saved with the set) when
+        ``shape.enabled``. Default: the ``shape`` section of a PixieConfig ``config``; with a RefsConfig, none
+        (a PoseEstimator with shape cues then builds them in memory, with an INFO message).
     """
     if shape is None:
-        shape = config.shape if isinstance(config, PixieConfig) else ShapeConfig()
+        shape = config.shape if isinstance(config, PixieConfig) else ShapeConfig(enabled=False)
     if not isinstance(shape, ShapeConfig):
         raise ReferenceSetError(f"shape must be a ShapeConfig, got {type(shape).__name__}")
     if not isinstance(mesh, Mesh):

@@ -3,7 +3,7 @@
 A file holds a format version (``FORMAT_VERSION``), the mesh's content hash and the build config; a stale, foreign
 or corrupt file raises :class:`ReferenceSetError`. Depth and normals are stored quantised (uint16 steps per view,
 int8) and decoded on first access (:class:`pixie.references.set.ReferenceSet` fields), so a load does not pay for
-arrays inference never reads. Contour templates are stored under ``tpl/`` keys with their own version
+arrays inference never reads; the mesh's convex-hull vertices are stored too. Contour templates are stored under ``tpl/`` keys with their own version
 (``TEMPLATES_VERSION``); :func:`ensure_templates` builds them for a set that lacks them (a file written before they
 were stored, or other ``shape.*`` settings) and saves them back into a writable file, once.
 """
@@ -97,6 +97,7 @@ def save_reference_set(refs: ReferenceSet, path: str | Path) -> Path:
         **(_stored_arrays(refs, "depth") or _quantise_depth(refs.depth)),
         **(_stored_arrays(refs, "normals") or {"normals_q": np.round(refs.normals * 127.0).astype(np.int8)}),
         "mesh_vertices": refs.mesh.vertices, "mesh_faces": refs.mesh.faces.astype(np.int32),
+        "mesh_hull": refs.mesh.hull_vertices,  # the estimator's box points: a convex hull (scipy) not redone per load
     }
     if refs.config.store_rotated_encodings:  # roll-0 encodings are re-derived from D and N on load
         for name, img in refs.encodings.items():
@@ -141,6 +142,8 @@ def load_reference_set(path: str | Path, mesh: Mesh | None = None) -> ReferenceS
     try:
         stored_mesh = from_arrays(data["mesh_vertices"], data["mesh_faces"], name=meta["mesh_name"])
         stored_mesh.source_hash = meta["mesh_hash"]
+        if "mesh_hull" in data:  # sets written before it was stored compute it on first use
+            stored_mesh._hull_vertices = data["mesh_hull"]
         cfg = RefsConfig(**meta["config"])
         feats: dict[str, dict[str, np.ndarray]] = {}
         for k, v in data.items():
