@@ -8,7 +8,7 @@ STAMP := $(VENV)/.installed
 PIP_VERSION := 26.3
 EXTRAS := test,synth,ray
 
-.PHONY: demo test setup clean bench lock wheel-check
+.PHONY: demo test test-fast lint setup clean bench lock wheel-check
 
 $(STAMP): pyproject.toml constraints.txt
 	$(PY) -m venv $(VENV)
@@ -24,6 +24,13 @@ demo: $(STAMP)
 
 test: $(STAMP)
 	$(BIN)/python -m pytest -q
+
+# The inner loop: everything but the tests marked slow (the full end-to-end runs).
+test-fast: $(STAMP)
+	$(BIN)/python -m pytest -q -m "not slow"
+
+lint: $(STAMP)
+	$(BIN)/ruff check src tests bench
 
 # The installed wheel, outside the repo, offline, with no shared data: `pixie demo` and `pixie estimate` must run.
 wheel-check:

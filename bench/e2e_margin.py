@@ -18,10 +18,12 @@ from pathlib import Path
 
 import numpy as np
 
-sys.path.insert(0, str(Path(__file__).resolve().parents[1] / "tests"))
+sys.path.insert(0, str(Path(__file__).resolve().parents[1] / "src"))
 
-from conftest import _procedural_trimesh, aliked_weights_present, torch_threads  # noqa: E402
-from test_pipeline import E2E_POSES, K_Q, e2e_config, generic_pose, pose_errors, render_photo  # noqa: E402
+from pixie.errors import WeightsError  # noqa: E402
+from pixie.synth.e2e import E2E_POSES, K_Q, e2e_config, generic_pose, pose_errors, procedural_part, render_photo  # noqa: E402
+from pixie.threads import set_threads  # noqa: E402
+from pixie.weights import resolve_weights  # noqa: E402
 
 from pixie.pipeline.estimator import PoseEstimator  # noqa: E402
 from pixie.geometry.mesh import from_arrays  # noqa: E402
@@ -33,24 +35,29 @@ def main() -> None:
     ap.add_argument("--seeds", type=int, default=2, help="photo seeds per pose")
     ap.add_argument("--out", default="out/bench/e2e_margin.json")
     args = ap.parse_args()
-    tm = _procedural_trimesh()
+    tm = procedural_part()
     mesh = from_arrays(np.asarray(tm.vertices), np.asarray(tm.faces), name="proc")
-    cfg = e2e_config("aliked-nn" if aliked_weights_present() else "sift-nn")
+    try:
+        resolve_weights("aliked-n16")
+        name = "aliked-nn"
+    except WeightsError:
+        name = "sift-nn"
+    cfg = e2e_config(name)
     matcher = make_matcher(cfg)
-    with torch_threads(1):
-        refs = build_reference_set(mesh, cfg.refs, matcher=matcher)
-        est = PoseEstimator(refs, cfg, matcher=matcher)
-        rows = []
-        for pose in E2E_POSES:
-            for s in range(args.seeds):
-                T = generic_pose(mesh, *pose)
-                img, bbox, _ = render_photo(mesh, T, K_Q, seed=100 * s + len(rows))
-                t = time.perf_counter()
-                res = est.estimate(img, K_Q, bbox=bbox)
-                dt = time.perf_counter() - t
-                rot, tr = pose_errors(res.T_cam_from_obj, T, mesh.diameter) if res.T_cam_from_obj is not None else (180.0, 1.0)
-                rows.append({"pose": pose, "seed": s, "rot_deg": rot, "trans_frac": tr, "failed": res.failed, "s": dt})
-                print(f"{str(pose):24s} seed {s}: {rot:6.2f} deg  {100 * tr:5.1f} %  {dt:.1f} s", flush=True)
+    set_threads(1)
+    refs = build_reference_set(mesh, cfg.refs, matcher=matcher)
+    est = PoseEstimator(refs, cfg, matcher=matcher)
+    rows = []
+    for pose in E2E_POSES:
+        for s in range(args.seeds):
+            T = generic_pose(mesh, *pose)
+            img, bbox, _ = render_photo(mesh, T, K_Q, seed=100 * s + len(rows))
+            t = time.perf_counter()
+            res = est.estimate(img, K_Q, bbox=bbox)
+            dt = time.perf_counter() - t
+            rot, tr = pose_errors(res.T_cam_from_obj, T, mesh.diameter) if res.T_cam_from_obj is not None else (180.0, 1.0)
+            rows.append({"pose": pose, "seed": s, "rot_deg": rot, "trans_frac": tr, "failed": res.failed, "s": dt})
+            print(f"{str(pose):24s} seed {s}: {rot:6.2f} deg  {100 * tr:5.1f} %  {dt:.1f} s", flush=True)
     rot = np.array([r["rot_deg"] for r in rows])
     tr = np.array([r["trans_frac"] for r in rows])
     ok = (rot < 5.0) & (tr < 0.05)

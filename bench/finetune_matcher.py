@@ -198,17 +198,17 @@ def cmd_oracle(args) -> int:
     import numpy as np
     import torch
 
-    sys.path.insert(0, str(REPO / "bench"))
+    import common as C  # bench/common.py (this script's folder is on sys.path)
     import lmo_pipeline as LP
 
     from pixie.eval.datasets import BopDataset
 
     torch.set_num_threads(args.threads)
-    ds = BopDataset(LP.DEFAULT_DATASET)
-    targets = LP.select_targets(ds, args.max_targets)
-    cfg = LP.make_config(args.set)
+    ds = BopDataset(C.DEFAULT_DATASET)
+    targets = C.select_targets(ds, args.max_targets)
+    cfg = C.make_config(args.set, args.preset)
     window = cfg.match.window * cfg.refs.size
-    objects = LP.ObjectCache(ds)
+    objects = C.ObjectCache(ds)
     mats = oracle_matchers(args.matchers.split(","), window, OUT / "oracle_feature_cache", args.adapter)
     args.out.mkdir(parents=True, exist_ok=True)
     rows = []
@@ -278,6 +278,7 @@ def main(argv=None) -> int:
     o.add_argument("--set", action="append", default=[], help="section.key=value (as lmo_pipeline)")
     o.add_argument("--out", type=Path, default=OUT / "oracle")
     o.add_argument("--threads", type=int, default=1)
+    o.add_argument("--preset", default="default", help="configuration the comparison starts from (default default)")
     args = ap.parse_args(argv)
     return {"gen": cmd_gen, "train": cmd_train, "ship": cmd_ship, "oracle": cmd_oracle}[args.cmd](args)
 

@@ -21,17 +21,14 @@ from __future__ import annotations
 
 import argparse
 import json
-import sys
 import time
 from pathlib import Path
 
 import numpy as np
 
 REPO = Path(__file__).resolve().parents[1]
-sys.path.insert(0, str(REPO / "bench"))
-import lmo_pipeline as L  # noqa: E402
+import common as L  # noqa: E402  (bench/common.py: targets, object cache, presets)
 
-from pixie.geometry.camera import rotation_angle_deg  # noqa: E402
 from pixie.references.templates import build_templates, distinct_by_rotation  # noqa: E402
 from pixie.cues.edges import prepare_query, search, template_bank  # noqa: E402
 from pixie.pipeline.query import check_bbox  # noqa: E402

@@ -27,14 +27,12 @@ import argparse
 import copy
 import csv
 import json
-import sys
 import time
 from pathlib import Path
 
 import numpy as np
 
-sys.path.insert(0, str(Path(__file__).resolve().parent))
-import lmo_pipeline as L  # noqa: E402
+import common as L  # noqa: E402  (bench/common.py: targets, object cache, presets)
 
 from pixie.pipeline.estimator import PoseEstimator  # noqa: E402
 from pixie.eval import pose_errors  # noqa: E402
@@ -95,12 +93,13 @@ def main(argv: list[str] | None = None) -> int:
     ap.add_argument("--set", action="append", default=[], dest="overrides")
     ap.add_argument("--threads", type=int, default=2)
     ap.add_argument("--out", type=Path, default=L.REPO / "out/bench/lmo_hypotheses.json")
+    L.add_preset_arg(ap)
     args = ap.parse_args(argv)
     import torch
 
     torch.set_num_threads(args.threads)
     ds = L.BopDataset(args.dataset)
-    cfg = L.make_config(args.overrides + ["refine.n_hypotheses=1000"])  # keep every distinct hypothesis
+    cfg = L.make_config(args.overrides + ["refine.n_hypotheses=1000"], args.preset)  # keep every distinct hypothesis
     objects = L.ObjectCache(ds)
     matcher = make_matcher(cfg)
     targets = L.select_targets(ds, args.max_targets)

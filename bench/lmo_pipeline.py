@@ -5,8 +5,8 @@ Usage::
     nice .venv/bin/python bench/lmo_pipeline.py [--max-targets 48] [--set section.key=value ...] \
         [--config NAME:section.key=value,section.key=value ...] [--oracle] [--out out/bench/lmo_pipeline]
 
-Every ``--config`` is run in turn (with the global ``--set`` overrides applied first); without any
-``--config`` the defaults (+ ``--set``) run as ``default``. Per configuration it
+Every ``--config`` is run in turn, starting from ``--preset`` (default ``default``) with the global ``--set``
+overrides applied first; without any ``--config`` the preset (+ ``--set``) runs under the preset's name. Per configuration it
 
 * builds (or loads from ``out/bench/refs/``) one reference set per object with
   :func:`pixie.app.runner.cached_reference_set` (its key covers the mesh, ``cfg.refs`` and the matcher's
@@ -32,138 +32,35 @@ from __future__ import annotations
 
 import argparse
 import copy
-import hashlib
 import json
-import math
-import sys
 import time
 from dataclasses import dataclass, field
 from pathlib import Path
 
 import numpy as np
 
-REPO = Path(__file__).resolve().parents[1]
-sys.path.insert(0, str(REPO / "src"))
+from common import (DEFAULT_DATASET, DEFAULT_OUT, REFS_CACHE, REPO, ObjectCache, add_preset_arg,  # noqa: E402,F401
+                    config_for_hash, gt_instance, make_config, parse_config_arg, refs_key, select_targets, short_hash)
 
 from pixie.geometry.camera import make_T, project, transform_points  # noqa: E402
 from pixie.config import PixieConfig  # noqa: E402
 from pixie.references.encode import encode  # noqa: E402
 from pixie.pipeline.estimator import PoseEstimator  # noqa: E402
-from pixie.eval import evaluate, load_object_data, pose_errors  # noqa: E402
+from pixie.eval import evaluate, pose_errors  # noqa: E402
 from pixie.eval.datasets import BopDataset, PoseEstimate, Target, write_results_csv  # noqa: E402
 from pixie.geometry.rotations import rotation_between  # noqa: E402
-from pixie.geometry.mesh import load_mesh  # noqa: E402
 from pixie.pose.solve import lift  # noqa: E402
 from pixie.pipeline.query import check_bbox, square_crop  # noqa: E402
 from pixie.references.set import ReferenceSet, keypoint_xyz_from_depth  # noqa: E402
 from pixie.geometry.render import Renderer  # noqa: E402
-from pixie.app.runner import Journal, cached_reference_set, make_matcher, reference_cache_path  # noqa: E402
+from pixie.app.runner import Journal, make_matcher  # noqa: E402
+from pixie.threads import set_threads  # noqa: E402
 from pixie.references.views import camera_distance, square_crop_K, start_K  # noqa: E402
 
-DEFAULT_DATASET = REPO.parent / "shared/data/lmo_dev/lmo"
-DEFAULT_OUT = REPO / "out/bench/lmo_pipeline"
-REFS_CACHE = REPO / "out/bench/refs"
 CORRECT_PX = 5.0  # crop pixels: a match is correct when the GT projection of its 3D point is this close
 
 
 # ------------------------------------------------------------------------------------------ helpers
-
-
-def make_config(overrides: list[str]) -> PixieConfig:
-    return PixieConfig().apply_overrides(overrides)
-
-
-def parse_config_arg(text: str) -> tuple[str, list[str]]:
-    """``NAME:a.b=1,c.d=x`` -> ("NAME", ["a.b=1", "c.d=x"]). Lists inside [] keep their commas."""
-    name, _, rest = text.partition(":")
-    items, depth, cur = [], 0, ""
-    for ch in rest:
-        depth += ch == "["
-        depth -= ch == "]"
-        if ch == "," and depth == 0:
-            items.append(cur)
-            cur = ""
-        else:
-            cur += ch
-    if cur:
-        items.append(cur)
-    return name, [i.strip() for i in items if i.strip()]
-
-
-def _hash(obj) -> str:
-    return hashlib.sha1(json.dumps(obj, sort_keys=True, default=str).encode()).hexdigest()[:12]
-
-
-def select_targets(ds: BopDataset, max_targets: int | None, objects: list[int] | None = None) -> list[Target]:
-    """All targets, or ``max_targets`` spread evenly over the objects (evenly spaced within each object)."""
-    tg = [t for t in ds.targets() if objects is None or t.obj_id in objects]
-    if not max_targets or max_targets >= len(tg):
-        return tg
-    by_obj: dict[int, list[Target]] = {}
-    for t in tg:
-        by_obj.setdefault(t.obj_id, []).append(t)
-    per = max(1, math.ceil(max_targets / len(by_obj)))
-    out = []
-    for oid in sorted(by_obj):
-        lst = by_obj[oid]
-        idx = np.unique(np.linspace(0, len(lst) - 1, min(per, len(lst))).round().astype(int))
-        out += [lst[i] for i in idx]
-    return sorted(out, key=lambda t: (t.scene_id, t.im_id, t.obj_id))
-
-
-def gt_instance(ds: BopDataset, t: Target):
-    """The most visible GT instance of the target's object (LM-O has one per object)."""
-    insts = [g for g in ds.instances(t.scene_id, t.im_id) if g.obj_id == t.obj_id]
-    return max(insts, key=lambda g: g.visib_fract or 0.0)
-
-
-class ObjectCache:
-    """Per object: model mesh (mm), eval data (diameter, ADD points, symmetry), reference sets per config.
-
-    Reference sets come from :func:`pixie.app.runner.cached_reference_set` (one cache in ``out/bench/refs``, shared
-    with other bench processes); ``build_seconds`` and ``refs_bytes`` record what they cost.
-    """
-
-    def __init__(self, ds: BopDataset):
-        self.ds = ds
-        self._mesh, self._eval, self._refs, self._renderer = {}, {}, {}, {}
-        self.build_seconds: dict[tuple[str, int], float] = {}
-        self.refs_bytes: dict[tuple[str, int], int] = {}
-
-    def mesh(self, oid: int):
-        if oid not in self._mesh:
-            self._mesh[oid] = load_mesh(self.ds.model_path(oid), units="mm")
-        return self._mesh[oid]
-
-    def eval_data(self, oid: int):
-        if oid not in self._eval:
-            self._eval[oid] = load_object_data(self.ds, oid, n_points=2000)
-        return self._eval[oid]
-
-    def renderer(self, oid: int, smooth: bool = True):
-        if (oid, smooth) not in self._renderer:
-            self._renderer[(oid, smooth)] = Renderer(self.mesh(oid), smooth_normals=smooth)
-        return self._renderer[(oid, smooth)]
-
-    def refs(self, cfg: PixieConfig, oid: int, matcher, log=print):
-        path = reference_cache_path(self.mesh(oid), cfg, REFS_CACHE)
-        key = path.stem
-        if (key, oid) in self._refs:
-            return self._refs[(key, oid)]
-        refs = cached_reference_set(self.mesh(oid), cfg, REFS_CACHE, matcher=matcher,
-                                    echo=lambda msg: log(f"  obj {oid}: {msg}"))
-        self.build_seconds[(refs_key(cfg), oid)] = refs.build_seconds
-        self.refs_bytes[(refs_key(cfg), oid)] = path.stat().st_size
-        self._refs = {k: v for k, v in self._refs.items() if k[0] == key}  # keep one config's sets in memory
-        self._refs[(key, oid)] = refs
-        return refs
-
-
-def refs_key(cfg: PixieConfig) -> str:
-    """What the reference sets of a configuration depend on (the summary's key; the cache adds the mesh)."""
-    m = cfg.match
-    return _hash({"refs": cfg.refs.__dict__, "matcher": m.matcher, "max_kp": m.max_keypoints, "w": m.weights_dir,
-                  "det": m.detection_threshold})
 
 
 # ------------------------------------------------------------------------------------------ oracle
@@ -289,10 +186,11 @@ def run_pipeline(ds: BopDataset, targets: list[Target], cfg: PixieConfig, name: 
                  progress=print, reverse: bool = False) -> dict:
     """Run the estimator on ``targets``; resumable through ``<out>/runs/<hash>/targets.jsonl``."""
     objects = objects or ObjectCache(ds)
-    run_hash = _hash({"cfg": cfg.to_dict(), "crop": crop, "tag": tag})
+    run_hash = short_hash({"cfg": config_for_hash(cfg), "crop": crop, "tag": tag})
     run_dir = out_dir / "runs" / run_hash
     run_dir.mkdir(parents=True, exist_ok=True)
-    (run_dir / "config.json").write_text(json.dumps({"name": name, "cfg": cfg.to_dict(), "crop": crop, "tag": tag}, indent=1))
+    (run_dir / "config.json").write_text(json.dumps({"name": name, "preset": cfg.preset, "cfg": cfg.to_dict(), "crop": crop,
+                                                     "tag": tag}, indent=1))
     done = Journal(run_dir / "targets.jsonl", key=lambda d: (d["scene_id"], d["im_id"], d["obj_id"]))
     todo = [t for t in targets if (t.scene_id, t.im_id, t.obj_id) not in done]
     progress(f"[{name}] {len(targets)} targets, {len(targets) - len(todo)} cached, run {run_hash}")
@@ -425,26 +323,24 @@ def main(argv: list[str] | None = None) -> int:
     ap.add_argument("--no-ar", action="store_true", help="skip AR (no VSD)")
     ap.add_argument("--reverse-objects", action="store_true", help="process objects in decreasing id order "
                     "(a second process then builds other objects' references first)")
-    ap.add_argument("--threads", type=int, default=None, help="torch threads")
+    ap.add_argument("--threads", type=int, default=None, help="torch/OpenCV threads (default: pixie.threads' policy)")
+    add_preset_arg(ap)
     args = ap.parse_args(argv)
-    if args.threads:
-        import torch
-
-        torch.set_num_threads(args.threads)
+    set_threads(args.threads)
     ds = BopDataset(args.dataset)
     objs = [int(x) for x in args.objects.split(",")] if args.objects else None
     targets = select_targets(ds, args.max_targets, objs)
-    configs = [parse_config_arg(c) for c in args.config] or [("default", [])]
+    configs = [parse_config_arg(c) for c in args.config] or [(args.preset, [])]  # named after the preset it runs
     objects = ObjectCache(ds)
     args.out.mkdir(parents=True, exist_ok=True)
     rows = []
     for name, ov in configs:
-        cfg = make_config(args.overrides + ov)
+        cfg = make_config(args.overrides + ov, args.preset)
         if args.oracle:
             t0 = time.perf_counter()
             r = run_oracle(ds, targets, cfg, crop=args.crop, objects=objects)
             r["name"] = name
-            r["config"] = cfg.to_dict()
+            r["config"], r["preset"] = cfg.to_dict(), cfg.preset
             print(f"[{name}] oracle done in {time.perf_counter() - t0:.0f} s")
             (args.out / f"oracle_{name}.json").write_text(json.dumps(r, indent=1, default=float))
         else:

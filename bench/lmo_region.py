@@ -15,7 +15,6 @@ from __future__ import annotations
 
 import argparse
 import json
-import sys
 import time
 from pathlib import Path
 
@@ -23,8 +22,7 @@ import cv2
 import numpy as np
 
 REPO = Path(__file__).resolve().parents[1]
-sys.path.insert(0, str(REPO / "bench"))
-import lmo_pipeline as L  # noqa: E402
+import common as L  # noqa: E402  (bench/common.py: targets, object cache, presets)
 
 from pixie.geometry.camera import make_T  # noqa: E402
 from pixie.references.templates import build_templates  # noqa: E402

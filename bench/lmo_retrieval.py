@@ -17,13 +17,11 @@ from __future__ import annotations
 import argparse
 import copy
 import json
-import sys
 from pathlib import Path
 
 import numpy as np
 
-sys.path.insert(0, str(Path(__file__).resolve().parent))
-import lmo_pipeline as L  # noqa: E402
+import common as L  # noqa: E402  (bench/common.py: targets, object cache, presets)
 
 from pixie.geometry.camera import rotation_angle_deg  # noqa: E402
 from pixie.pipeline.estimator import PoseEstimator  # noqa: E402
@@ -65,12 +63,13 @@ def main(argv: list[str] | None = None) -> int:
     ap.add_argument("--near", type=float, default=20.0, help="degrees from the GT rotation that count as right")
     ap.add_argument("--threads", type=int, default=2)
     ap.add_argument("--out", type=Path, default=L.REPO / "out/bench/lmo_retrieval.json")
+    L.add_preset_arg(ap)
     args = ap.parse_args(argv)
     import torch
 
     torch.set_num_threads(args.threads)
     ds = L.BopDataset(args.dataset)
-    cfg = L.make_config(args.overrides)
+    cfg = L.make_config(args.overrides, args.preset)
     objects = L.ObjectCache(ds)
     matcher = make_matcher(cfg)
     targets = L.select_targets(ds, args.max_targets)

@@ -15,10 +15,11 @@ import numpy as np
 import pytest
 import trimesh
 
-from pixie.geometry.camera import make_T
+from pixie.geometry.camera import make_T, validate_pose
 from pixie.geometry.mesh import from_arrays
 from pixie.geometry.render import Renderer, composite
 
+from pixie.synth.e2e import procedural_part
 from pixie.weights import shared_root
 
 _SHARED = shared_root() or Path("/nonexistent-shared")  # $PIXIE_SHARED, else ../shared beside the repository
@@ -77,27 +78,7 @@ def matcher_name() -> str:
 # ------------------------------------------------------------------------------------------ meshes
 
 
-def _procedural_trimesh():
-    """An asymmetric part, about 80 x 70 x 65 mm: a block with a cylinder, a peg and a notch.
-
-    Boolean operations use manifold3d when installed; otherwise the parts are concatenated
-    (interior faces are hidden from outside views, so rendering is the same up to the notch).
-    """
-    import trimesh
-
-    box = trimesh.creation.box(extents=[80.0, 50.0, 30.0])
-    cyl = trimesh.creation.cylinder(radius=12.0, height=40.0, sections=32)
-    cyl.apply_translation([20.0, 5.0, 30.0])
-    peg = trimesh.creation.box(extents=[10.0, 30.0, 10.0])
-    peg.apply_translation([-25.0, 30.0, 0.0])
-    notch = trimesh.creation.box(extents=[30.0, 30.0, 40.0])
-    notch.apply_translation([-35.0, -20.0, 10.0])
-    try:
-        m = trimesh.boolean.union([box, cyl, peg], engine="manifold")
-        m = trimesh.boolean.difference([m, notch], engine="manifold")
-    except Exception:  # noqa: BLE001 - no boolean engine: a concatenation (no notch) is still asymmetric
-        m = trimesh.util.concatenate([box, cyl, peg])
-    return m
+_procedural_trimesh = procedural_part  # the part lives in pixie.synth.e2e (the bench uses it too)
 
 
 @pytest.fixture(scope="session")
@@ -197,12 +178,24 @@ def one_torch_thread():
 
 @pytest.fixture(scope="session")
 def build_refs():
-    """``build_refs(mesh, refs_config, matcher=None, workers=1)``: build_reference_set with one torch thread."""
+    """``build_refs(mesh, refs_config, matcher=None, workers=1)``: build_reference_set with one torch thread, and
+    the contour templates of the default ``shape.*`` settings built once per mesh and session (shared by every
+    set of that mesh, so estimators with shape cues do not each render 300 templates)."""
+    from pixie.config import ShapeConfig
     from pixie.references.set import build_reference_set
+    from pixie.references.store import ensure_templates
+
+    templates: dict = {}  # contour templates (default shape.* settings) per mesh, built once a session
 
     def _build(mesh, cfg, matcher=None, workers: int = 1):
         with torch_threads(1):
-            return build_reference_set(mesh, cfg, matcher=matcher, workers=workers)
+            refs = build_reference_set(mesh, cfg, matcher=matcher, workers=workers, shape=ShapeConfig(enabled=False))
+            key = (mesh.source_hash, len(mesh.vertices), len(mesh.faces))
+            if key not in templates:
+                ensure_templates(refs, ShapeConfig(), save=False)
+                templates[key] = refs.templates
+            refs.templates = templates[key]
+        return refs
 
     return _build
 
@@ -294,3 +287,17 @@ def synthetic_bop(tmp_path_factory):
     """``(root, meta)`` of :func:`build_synthetic_bop` (written once per session; do not modify it)."""
     root = tmp_path_factory.mktemp("synthetic_bop") / "bop"
     return root, build_synthetic_bop(root)
+
+
+# ------------------------------------------------------------------ shared checks (``from conftest import ...``)
+TIMING_KEYS = ("extract", "match", "pnp", "total")
+
+
+def check_result(res):
+    assert res.T_cam_from_obj is not None, res.message
+    assert np.all(np.isfinite(res.T_cam_from_obj))
+    validate_pose(res.T_cam_from_obj)
+    for k in TIMING_KEYS:
+        assert k in res.timings and res.timings[k] > 0, f"timing {k!r} missing or not positive: {res.timings}"
+    assert res.timings["total"] >= res.timings["extract"] + res.timings["match"] + res.timings["pnp"] - 1e-6
+    json.dumps(res.to_dict())  # serialisable

@@ -4,7 +4,9 @@ from __future__ import annotations
 
 import numpy as np
 import pytest
-from test_pipeline import E2E_POSES, K_Q, check_result, e2e_config, generic_pose, pose_errors, render_photo
+from conftest import check_result
+
+from pixie.synth.e2e import E2E_POSES, K_Q, e2e_config, generic_pose, pose_errors, render_photo
 
 from pixie.errors import ConfigError
 from pixie.pipeline.estimator import PoseEstimator

@@ -11,6 +11,7 @@ from pixie.errors import CameraError
 from pixie.pipeline.query import check_bbox, square_crop
 from pixie.cues.refine import aligned_correspondences, keypoint_xyz, render_in_crop
 from pixie.geometry.camera import crop_intrinsics
+from pixie.synth.e2e import K_Q, generic_pose, render_photo
 from pixie.geometry.render import Renderer
 
 K = make_K(600.0, 605.0, 321.5, 238.0)
@@ -59,7 +60,6 @@ def test_render_in_crop_is_the_crop_of_the_render(proc_mesh, make_pose):
 @pytest.mark.usefixtures("one_torch_thread")
 def test_aligned_matching_refines_a_perturbed_pose(proc_mesh, matcher_name):
     """Two refinement steps from a pose 8° off on a textured render bring it within 2.5° (a real ALIKED match)."""
-    from test_pipeline import K_Q, generic_pose, render_photo
 
     from pixie.pose.solve import solve_pnp_ransac
     from pixie.app.runner import make_matcher
