@@ -11,18 +11,19 @@ against 5.3 s with ``--threads 1``) and ``pixie refs build`` 8x slower. The poli
 * then :func:`set_threads` fixes torch's, OpenCV's and (when ``threadpoolctl`` is installed) BLAS's pools;
 * the default count (:func:`default_threads`) is measured on the 2-core project machine under load
   (bench/RESULTS.md, "Threads (issue 21)"): half the CPUs this process may use, at most 4, at least 1;
-* reference-rendering worker processes use 1 thread each.
+* reference-rendering worker processes use 1 OpenCV thread each (:func:`one_thread_while_forking`).
 """
 
 from __future__ import annotations
 
 import os
 import sys
+from contextlib import contextmanager
 
 from pixie.errors import PixieError
 
 __all__ = ["COUNT_VARS", "default_threads", "configure_env", "threads_from_argv", "set_threads", "get_threads",
-           "set_forked_worker_threads"]
+           "one_thread_while_forking"]
 
 COUNT_VARS = ("OMP_NUM_THREADS", "MKL_NUM_THREADS", "OPENBLAS_NUM_THREADS")
 
@@ -88,9 +89,17 @@ def set_threads(n: int | None = None) -> int:
     return before
 
 
-def set_forked_worker_threads() -> None:
-    """One OpenCV thread in a forked render worker. torch is left alone there: it does no work in the workers,
-    and resizing an OpenMP pool inherited through ``fork`` can deadlock (GNU libgomp is not fork-safe)."""
+
+@contextmanager
+def one_thread_while_forking():
+    """OpenCV at one thread while worker processes are forked, so that they inherit a serial OpenCV (1 thread
+    each); the parent's setting is restored after. Changing thread pools *in* a forked child deadlocks (OpenCV's
+    and GNU OpenMP's pools are not fork-safe), so the workers never do; torch does no work in them."""
     import cv2
 
+    before = cv2.getNumThreads()
     cv2.setNumThreads(1)
+    try:
+        yield
+    finally:
+        cv2.setNumThreads(before)

@@ -36,7 +36,7 @@ from pixie.errors import ReferenceSetError
 from pixie.features import Features, pack_features, unpack_features
 from pixie.geometry.rotations import nearest_pixel
 from pixie.geometry.mesh import Mesh
-from pixie.threads import set_forked_worker_threads
+from pixie.threads import one_thread_while_forking
 from pixie.geometry.render import Renderer
 from pixie.references.templates import ContourTemplates, build_templates
 from pixie.references.views import camera_distance, roll, roll_angles, square_crop_K, start_K, view_poses
@@ -343,7 +343,6 @@ def _die_with_parent(parent_pid: int) -> None:
 
 def _worker_init(mesh: Mesh, cfg: RefsConfig, K0: np.ndarray, n_render: int | None, parent_pid: int) -> None:
     _die_with_parent(parent_pid)
-    set_forked_worker_threads()  # one thread per render process: the workers are the parallelism
     _WORKER_STATE.update(mesh=mesh, cfg=cfg, K0=K0, n_render=n_render,
                          renderer=Renderer(mesh, smooth_normals=cfg.smooth_normals))
 
@@ -368,7 +367,9 @@ def _iter_rendered_views(mesh: Mesh, cfg: RefsConfig, base: np.ndarray, K0: np.n
     init_args = (mesh, cfg, K0, n_render, os.getpid())
     ex = ProcessPoolExecutor(workers, mp_context=ctx, initializer=_worker_init, initargs=init_args)
     try:
-        yield from ex.map(_worker_render, list(base), chunksize=1)
+        with one_thread_while_forking():  # map() forks the workers now: each renders with one OpenCV thread
+            views = ex.map(_worker_render, list(base), chunksize=1)
+        yield from views
     finally:  # on Ctrl-C or an error: drop the queued views instead of rendering them all first
         ex.shutdown(wait=True, cancel_futures=True)
 
