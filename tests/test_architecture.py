@@ -28,7 +28,7 @@ LAYERS: list[tuple[str, ...]] = [
     ("pixie.matching",),
     ("pixie.pose",),
     # cues beside refinement: edge/contour templates, region refinement (pixie.contours, pixie.edges, pixie.region)
-    ("pixie.refine", "pixie.contours", "pixie.edges", "pixie.region", "pixie.cues", "pixie.shape"),
+    ("pixie.refine", "pixie.contours", "pixie.edges", "pixie.region", "pixie.cues", "pixie.shape", "pixie.edge_photo", "pixie.edge_align"),
     ("pixie.results", "pixie.estimator"),
     ("pixie.viz",),
     ("pixie.eval",),

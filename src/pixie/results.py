@@ -12,7 +12,8 @@ import numpy as np
 
 from pixie._version import __version__
 
-__all__ = ["Hypothesis", "PoseResult", "set_confidences", "FRAME", "SCORE_NOTE", "CONFIDENCE_NOTE", "NO_BOX_MESSAGE"]
+__all__ = ["Hypothesis", "PoseResult", "set_confidences", "FRAME", "SCORE_NOTE", "CONFIDENCE_NOTE", "CALIBRATED_NOTE",
+           "NO_BOX_MESSAGE"]
 
 FRAME = ("OpenCV camera (x right, y down, z forward); T_cam_from_obj maps object points (mm, the mesh's frame) "
          "to camera points: x_cam = R x_obj + t")
@@ -22,6 +23,9 @@ SCORE_NOTE = ("support of the pose: summed match similarity of its PnP inliers a
 CONFIDENCE_NOTE = ("score / (score + the best distinct alternative's score): how much a hypothesis stands out, "
                    "0.5 = a tie. Not calibrated: it is not a probability that the pose is correct")
 
+CALIBRATED_NOTE = ("estimated probability that the pose is right (ADD(-S) < 0.1 diameter), from its aligned edge fit "
+                   "and its margin over the best distinct alternative; calibrated on LM-O dev photos with ground-truth "
+                   "boxes (bench/RESULTS.md, 'Confidence'): other objects, cameras or boxes may be calibrated differently")
 
 NO_BOX_MESSAGE = ("no object box: pass bbox=(x, y, w, h) in pixels (w, h counting pixels) or mask=... (white/True = "
                   "object); pixie does not guess where the object is (the box sets the crop and the object's distance). "
@@ -80,6 +84,8 @@ class PoseResult:
     config_digest: str | None = None
     device: str | None = None
     warnings: list[str] = field(default_factory=list)  # unusual but accepted inputs (intrinsics for the image size)
+    candidates: list[Hypothesis] = field(default_factory=list, repr=False)  # every ranked hypothesis (studies; not saved)
+    confidence_calibrated: bool = False  # confidence is the calibrated probability (config.align.confidence)
 
     def to_dict(self) -> dict:
         """Everything as JSON-able data (poses as nested lists, mm)."""
@@ -94,7 +100,8 @@ class PoseResult:
             "T_cam_from_obj": None if self.T_cam_from_obj is None else self.T_cam_from_obj.tolist(),
             "failed": self.failed, "message": self.message,
             "score": self.score, "score_note": SCORE_NOTE,
-            "confidence": self.confidence, "confidence_note": CONFIDENCE_NOTE,
+            "confidence": self.confidence,
+            "confidence_note": CALIBRATED_NOTE if self.confidence_calibrated else CONFIDENCE_NOTE,
             "n_inliers": self.n_inliers, "view": self.view, "roll": self.roll,
             "K": None if self.K is None else np.asarray(self.K).tolist(),
             "box": box,
