@@ -1,30 +1,31 @@
-"""Edge-based 6-DoF alignment of a pose to the photo (directional chamfer, the D2CO / FDCM family).
+"""Edge-based 6-DoF alignment of a pose to the photo (the D2CO / FDCM family of directional chamfer fits).
 
-The photo's edges are found once per query in a crop around the box, resampled so the object spans
-``object_px`` pixels: colour-gradient Canny (the channel of largest gradient per pixel), with sub-pixel
-positions along the gradient, split into ``n_bins`` unsigned orientation bins with one distance transform
-(and nearest-edge label) per bin (Liu et al., CVPR 2010). A model point of orientation ``o`` at ``p`` is matched
-to the nearest photo edge over the bins within ``max_bin_gap`` of ``o``, each bin away costing
-``bin_penalty`` px (the directional chamfer distance).
+Photo side (:mod:`pixie.edge_photo`, once per query): sub-pixel colour-Canny edges of a crop around the box in
+16 orientation bins, one distance transform per bin. Correspondences (``search``): each model point takes
+either the nearest photo edge in a bin within ``max_bin_gap`` of its own orientation (``'nearest'``, the
+directional chamfer distance of Liu et al., CVPR 2010, each bin away costing ``bin_penalty`` px) or the nearest
+such edge *along its normal* (``'normal'``, RAPID-style 1D search; the default), optionally only across a drop
+of the colour foreground posterior (``min_contrast``).
 
-The model side renders the hypothesis in the crop's own camera (:func:`crop_camera`) and takes its silhouette
-and crease points with their 3D object points (:func:`pixie.contours.view_points`); it is re-rendered at
-every truncation level (visibility changes). Silhouette points are moved half a render pixel outwards (the
-boundary pixel's centre lies inside the true outline by that much on average).
+Model side: the hypothesis is rendered in the crop's own camera and its silhouette and crease points are kept
+with their 3D object points (:func:`pixie.contours.view_points`); it is re-rendered twice per truncation level
+(visibility changes). Silhouette points are moved half a render pixel outwards (the boundary pixel's centre
+lies inside the true outline by that much on average).
 
-The solver is Levenberg–Marquardt on se(3) (rotation about the object's centre, translation in the camera
-frame) on point-to-line residuals ``g . (p - e)`` (``g`` the photo edge's gradient direction at its
-sub-pixel position ``e``) with a Tukey biweight whose scale follows the truncation schedule (coarse to
-fine, e.g. 16 → 8 → 4 → 2 px), a graduated non-convexity. A model point that projects outside the given
-box (+ a margin) or outside the mask when one is given is occluded by definition and dropped, so depth,
-rotation and translation are refined jointly from what is visible and occlusion no longer sets depth.
+Solver: Levenberg–Marquardt on se(3) (rotation about the object's centre, translation in the camera frame) on
+point-to-line residuals ``g . (p - e)`` (``g`` the photo edge's gradient direction at its sub-pixel position
+``e``) with a Tukey biweight whose scale follows the schedule (8 → 4 → 2 px: graduated non-convexity). A model
+point outside the given box (+ a margin) or the mask is occluded by definition and dropped. The box sides are
+residuals too (``w_box``): a projection that falls short of a visible side costs quadratically, one that reaches
+past it (occlusion) only within the Tukey scale, so depth, rotation and translation are refined jointly and an
+occluded side no longer sets depth.
 
 The fit of a pose (:func:`edge_fit`) is the share of its visible model contour points within ``fit_px`` of a
-same-orientation photo edge, with the share of model points visible at all.
+same-orientation photo edge; it predicts whether a pose is right (the estimator's calibrated confidence).
 
->>> pe = photo_edges(image, K, box_xyxy)                      # once per photo
->>> res = align(renderer, pe, T0)                             # AlignResult: pose, fit, iterations
->>> fit = edge_fit(renderer, pe, res.T_cam_from_obj)          # EdgeFit
+>>> pe = photo_edges(image, K, box_xyxy)                                  # once per photo
+>>> res = align(renderer, pe, T0, hull=mesh.hull_vertices, w_box=1.0)    # AlignResult: pose, fit, iterations
+>>> fit = edge_fit(renderer, pe, res.T_cam_from_obj)                      # EdgeFit
 """
 
 from __future__ import annotations
@@ -341,10 +342,10 @@ def _robust_cost(K, T, mp, pe, tau, cfg) -> tuple[float, int]:
 
 
 def align(renderer: Renderer, pe: PhotoEdges, T0: np.ndarray, center: np.ndarray | None = None,
-          schedule: tuple[float, ...] = (16.0, 8.0, 4.0, 2.0), iters: int = 6, n_points: int = 240,
+          schedule: tuple[float, ...] = (8.0, 4.0, 2.0), iters: int = 6, n_points: int = 240,
           crease_weight: float = 0.5, crease_share: float = 0.3, max_bin_gap: int = 1, bin_penalty: float = 2.0,
           fit_px: float = 1.5, rerender: int = 2, rot_prior: float = 0.0, dof: str = "6",
-          search: str = "nearest", min_contrast: float = 0.0, w_box: float = 0.0,
+          search: str = "normal", min_contrast: float = 0.0, w_box: float = 0.0,
           hull: np.ndarray | None = None, coarse: PhotoEdges | None = None,
           coarse_schedule: tuple[float, ...] = (8.0, 4.0), out_cost: float = 1.0) -> AlignResult:
     """Levenberg–Marquardt alignment of ``T0`` (photo camera) to the photo's edges, coarse to fine.
