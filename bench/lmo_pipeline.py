@@ -227,7 +227,15 @@ def run_pipeline(ds: BopDataset, targets: list[Target], cfg: PixieConfig, name: 
                           "n_inliers": h.n_inliers, "matcher_best": h.matcher_best,
                           "add_ok": bool(e["add_ok"]), "rot_err": e["rot_err"], "add": e["add"]}
                          for h, e in zip(res.hypotheses, hyp_err)]
-            rec = {"hyp_add_ok": hyp_ok, "hyps": hyp_terms, "scene_id": t.scene_id, "im_id": t.im_id, "obj_id": t.obj_id, "visib": g.visib_fract,
+            # every aligned candidate (config.align) with its terms: selection-weight studies (bench/lmo_select.py)
+            cands = [h for h in res.candidates if "fused" in h.terms]
+            cand_terms = []
+            for h in cands:
+                e = pose_errors(od, h.T_cam_from_obj, g.T_cam_from_obj)
+                cand_terms.append({"source": h.source, "match_score": h.match_score, "T": h.T_cam_from_obj.tolist(),
+                                   "terms": {k: (None if not np.isfinite(v) else v) for k, v in h.terms.items()},
+                                   "add_ok": bool(e["add_ok"]), "rot_err": e["rot_err"], "add": e["add"]})
+            rec = {"hyp_add_ok": hyp_ok, "hyps": hyp_terms, "cands": cand_terms, "scene_id": t.scene_id, "im_id": t.im_id, "obj_id": t.obj_id, "visib": g.visib_fract,
                    "T": None if res.T_cam_from_obj is None else res.T_cam_from_obj.tolist(), "score": res.score,
                    "n_inliers": res.n_inliers, "failed": res.failed, "view": res.view, "roll": res.roll,
                    "confidence": res.confidence, "message": res.message,

@@ -35,6 +35,9 @@ CHOICES: dict[str, tuple[str, ...]] = {
     "pose.candidate_ranking": ("excess", "count"),
     "pose.views": ("all", "canonical"),
 }
+# Lists of numbers that may be empty or negative, and allowed list lengths.
+SIGNED_LISTS = {"align.confidence"}
+LIST_LENGTHS = {"align.confidence": (0, 3)}
 # (low, high, low_inclusive): numbers outside are refused; None bounds are open.
 RANGES: dict[str, tuple[float | None, float | None, bool]] = {
     "refs.n_fibonacci": (0, 100_000, True),
@@ -135,6 +138,18 @@ def check_value(dotted: str, annotation: str, value: Any) -> Any:
         if not value:
             raise ConfigError(f"{dotted} must not be empty")
         value = list(value)
+    elif base == "list[float]":
+        if isinstance(value, str):
+            value = [v.strip() for v in value.split(",") if v.strip()]
+        try:
+            value = [float(v) for v in value] if isinstance(value, (list, tuple)) else None
+        except (TypeError, ValueError):
+            value = None
+        signed = dotted in SIGNED_LISTS
+        if value is None or (not value and not signed) or not all(math.isfinite(v) and (signed or v > 0) for v in value):
+            raise ConfigError(f"{dotted} expects a {'list of numbers' if signed else 'non-empty list of positive numbers'}")
+        if dotted in LIST_LENGTHS and len(value) not in LIST_LENGTHS[dotted]:
+            raise ConfigError(f"{dotted} expects {' or '.join(map(str, LIST_LENGTHS[dotted]))} numbers, got {len(value)}")
     return value
 
 
@@ -299,6 +314,46 @@ _SECTION_NAMES = {RefsConfig: "refs", QueryConfig: "query", MatchConfig: "match"
 
 
 @dataclass
+class AlignConfig(_Section):
+    """Edge-based 6-DoF alignment of the best hypotheses to the photo (pixie.edge_align), then selection on the fit.
+
+    The ``hypotheses`` best distinct candidates (after the shape stage) and the 180° flip twins of the best
+    ``flips`` are aligned by Levenberg–Marquardt on the directional chamfer distance, coarse to fine over
+    ``schedule`` (Tukey scales, px of a crop where the box's longer side spans ``object_px``). Every candidate's
+    ranking score becomes the shape stage's fused score + ``w_fit`` * its aligned fit (share of visible
+    contour points within ``fit_px`` of a same-orientation photo edge).
+    """
+
+    enabled: bool = True
+    hypotheses: int = 4  # best distinct hypotheses aligned
+    flips: int = 1  # ... and the 180° flip twins (about the camera's x and y axes) of this many of them
+    object_px: float = 200.0  # the box's longer side in the alignment crop, px
+    schedule: list[float] = field(default_factory=lambda: [8.0, 4.0, 2.0])  # Tukey scales per level, crop px
+    iters: int = 6  # LM iterations per level (the model is re-rendered twice per level)
+    search: str = "normal"  # correspondences: along the model normal ('normal') or the nearest edge ('nearest')
+    min_contrast: float = 0.0  # >0: silhouette points take only edges with this drop of the colour foreground posterior
+    w_box: float = 1.0  # weight of each side of the given box (occlusion-aware: overshoot is robust) against the points
+    crease_weight: float = 0.5
+    rot_prior: float = 0.0  # pull towards the start rotation (px² per point per rad²); 0 = free
+    canny_low: float = 5.0  # Canny hysteresis thresholds, grey levels per photo pixel
+    canny_high: float = 12.0
+    fit_px: float = 1.5  # aligned fit: a contour point is supported by an edge this close (crop px)
+    w_fit: float = 1.0  # ranking score = the shape stage's fused score + w_fit * aligned fit
+    # calibrated confidence = logistic(a + b * fit + c * margin) of the chosen pose (margin: its score minus the best
+    # distinct alternative's), fitted by bench/lmo_select.py on one half of LM-O dev; [] = the uncalibrated ratio
+    confidence: list[float] = field(default_factory=lambda: [-3.45, 8.78, 0.31])
+    min_fit: float = 0.05  # a chosen pose with less aligned fit than this is flagged failed ("no edge support")
+
+
+_SECTION_NAMES[AlignConfig] = "align"
+CHOICES["align.search"] = ("normal", "nearest")
+RANGES.update({"align.min_contrast": (0, 1, True), "align.w_box": (0, None, True), "align.hypotheses": (0, 64, True), "align.flips": (0, 64, True), "align.object_px": (32, 2048, True),
+               "align.iters": (1, 100, True), "align.crease_weight": (0, 10, True), "align.rot_prior": (0, None, True),
+               "align.canny_low": (0, None, True), "align.canny_high": (0, None, True), "align.fit_px": (0, 100, False),
+               "align.w_fit": (0, None, True), "align.min_fit": (0, 1, True)})
+
+
+@dataclass
 class PixieConfig:
     refs: RefsConfig = field(default_factory=RefsConfig)
     query: QueryConfig = field(default_factory=QueryConfig)
@@ -306,6 +361,7 @@ class PixieConfig:
     pose: PoseConfig = field(default_factory=PoseConfig)
     refine: RefineConfig = field(default_factory=RefineConfig)
     shape: ShapeConfig = field(default_factory=ShapeConfig)
+    align: AlignConfig = field(default_factory=AlignConfig)
     preset: str | None = field(default=None, compare=False)  # name of the preset it started from (None: dataclass defaults)
 
     def to_dict(self) -> dict[str, Any]:

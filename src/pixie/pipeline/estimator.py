@@ -55,6 +55,7 @@ from pixie.pipeline.query import QueryCrop, bbox_from_mask, check_bbox, check_qu
 from pixie.references.set import ReferenceSet, add_features
 from pixie.cues.refine import aligned_correspondences, render_in_crop
 from pixie.geometry.render import Renderer
+from pixie.cues.edge_align import align, edge_fit, flip_twins, photo_edges
 from pixie.cues.edges import EdgeQuery
 from pixie.cues.shape import fused_score, shape_cues
 from pixie.pose.results import NO_BOX_MESSAGE, Hypothesis, PoseResult, set_confidences
@@ -108,6 +109,7 @@ class Query:
     box_source: str = "bbox"  # where ``box`` came from: 'bbox' (given) or 'mask' (the mask's box)
     edges: EdgeQuery | None = None  # the shape stage's edge query (config.shape), set by shape_stage
     best_match: float = 0.0  # best matcher score before shape verification (its scale), set by shape_stage
+    photo_edges: object = None  # the alignment stage's PhotoEdges (config.align), set by align_stage
 
 
 class PoseEstimator:
@@ -166,6 +168,7 @@ class PoseEstimator:
         self.box_points = refs.mesh.hull_vertices
         self._renderer = (Renderer(refs.mesh, smooth_normals=refs.config.smooth_normals)
                           if self.cfg.refine.render_iters > 0 else None)
+        self._align_renderer: Renderer | None = None
         self._shape = None
         if self.cfg.shape.enabled:
             self._shape = shape_cues(refs, self.cfg.shape)
@@ -211,6 +214,10 @@ class PoseEstimator:
             timings["verify"] = timings.get("verify", 0.0) + time.perf_counter() - t
         elif self._shape is not None:
             hyps = self.shape_stage(q, hyps, timings)
+        if self.cfg.align.enabled and hyps:
+            t = time.perf_counter()
+            hyps = self.align_stage(q, hyps)
+            timings["align"] = time.perf_counter() - t
         timings["total"] = time.perf_counter() - t_all
         return self.record_inputs(self.result(hyps, timings, q), q)
 
@@ -474,6 +481,63 @@ class PoseEstimator:
             timings["region_refine"] = time.perf_counter() - t
         return pool
 
+    def align_stage(self, q: Query, hyps: list[Hypothesis]) -> list[Hypothesis]:
+        """Edge-based 6-DoF alignment (``config.align``, :mod:`pixie.cues.edge_align`) of the best distinct hypotheses and
+        the flip twins of the best few, then selection on the aligned fit.
+
+        The aligned poses join the pool (source 'aligned'; a twin's source is 'flip'). The starts and the aligned
+        poses are ranked by ``terms['fused']`` (the shape stage's score, recomputed for the new poses) +
+        ``w_fit * terms['fit']``; every other hypothesis follows them in its previous order.
+        """
+        ac = self.cfg.align
+        if self._align_renderer is None:
+            self._align_renderer = Renderer(self.refs.mesh, smooth_normals=True)
+        ren = self._align_renderer
+        pe = photo_edges(q.image, q.K, q.box, q.mask, object_px=ac.object_px, canny_low=ac.canny_low,
+                         canny_high=ac.canny_high)
+        q.photo_edges = pe
+        starts = self.distinct(hyps, ac.hypotheses)
+        jobs = [(h, h.T_cam_from_obj, "aligned") for h in starts]
+        for h in starts[: ac.flips]:
+            jobs += [(h, T, "flip") for T in flip_twins(h.T_cam_from_obj, self.refs.mesh.center)]
+        kw = dict(schedule=tuple(ac.schedule), iters=ac.iters, crease_weight=ac.crease_weight, rot_prior=ac.rot_prior,
+                  fit_px=ac.fit_px, search=ac.search, min_contrast=ac.min_contrast, w_box=ac.w_box,
+                  hull=self.box_points)
+        new: list[Hypothesis] = []
+        for h, T0, src in jobs:
+            res = align(ren, pe, T0, **kw)
+            T = res.T_cam_from_obj
+            ms = h.match_score if src == "aligned" else 0.0  # a twin has no matcher support of its own
+            nh = Hypothesis(T_cam_from_obj=T, score=0.0, match_score=ms, n_inliers=h.n_inliers if src == "aligned" else 0,
+                            n_matches=h.n_matches, view=h.view, roll=h.roll, rot_to_ref_deg=0.0,
+                            box_iou=box_iou(projected_box(T, q.K, self.box_points), q.box), sim_sum=h.sim_sum,
+                            sim_mean=h.sim_mean, source=src)
+            nh.terms = {"fit": res.fit.share, "fit_silhouette": res.fit.silhouette_share, "fit_visible": res.fit.visible,
+                        "fit_dist": res.fit.mean_dist, "align_iterations": float(res.iterations)}
+            new.append(nh)
+        for h in starts:
+            f = edge_fit(ren, pe, h.T_cam_from_obj, fit_px=ac.fit_px)
+            h.terms.update({"fit": f.share, "fit_silhouette": f.silhouette_share, "fit_visible": f.visible,
+                            "fit_dist": f.mean_dist})
+        cands = starts + new
+        for h in cands:
+            if self._shape is not None and q.edges is not None:
+                if "edge" not in h.terms:
+                    h.terms.update(self._shape.verify_terms(q.edges, q.K, h.T_cam_from_obj))
+                    h.edge, h.region = h.terms["edge"], h.terms["region"]
+                h.fused = fused_score(self.cfg.shape, h.match_score, q.best_match, h.edge, h.region)
+            else:
+                h.fused = h.score if h.source != "flip" else 0.0
+            h.fit = h.terms["fit"]
+            h.terms["fused"] = h.fused
+            h.score = h.fused + ac.w_fit * h.fit
+        cands = sorted(cands, key=lambda h: -h.score)
+        floor = cands[-1].score if cands else 0.0
+        rest = [h for h in hyps if all(h is not c for c in starts)]
+        for h in rest:  # below every aligned candidate, in their previous order
+            h.score = min(h.score, floor * 0.999)
+        return cands + rest
+
     def shape_verify(self, q: Query, hyps: list[Hypothesis]) -> list[Hypothesis]:
         """Verify the hypotheses not yet verified (their ``score`` is the matcher's) and rank all by fused score."""
         sc = self.cfg.shape
@@ -523,10 +587,20 @@ class PoseEstimator:
         distinct = self.distinct(hyps, self.cfg.refine.n_hypotheses)
         set_confidences(distinct)
         confidence = distinct[0].confidence
+        ac = self.cfg.align
+        aligned = ac.enabled and "fit" in best.terms
+        if aligned and len(ac.confidence) == 3:  # calibrated on LM-O dev (bench/lmo_select.py)
+            margin = best.score - (distinct[1].score if len(distinct) > 1 else 0.0)
+            a, b, c = ac.confidence
+            confidence = float(1.0 / (1.0 + np.exp(-(a + b * best.terms["fit"] + c * margin))))
+            best.terms["margin"] = margin
         distinct += [h for h in hyps if h.matcher_best and all(h is not d for d in distinct)][:1]  # for comparisons
         shape_pose = best.source in ("edges", "region") or np.isfinite(best.edge)
         failed = (best.n_inliers < max(self.cfg.pose.min_inliers, 1) and not shape_pose) or best.score <= 0
         msg = "ok" if not failed else "low support"
+        if aligned and best.terms["fit"] < ac.min_fit:
+            failed, msg = True, (f"no edge support: {100 * best.terms['fit']:.0f} % of the pose's visible contour lies on "
+                                 "a photo edge (align.min_fit)")
         if q is not None:
             mesh = self.refs.mesh
             reasons = pose_contradictions(best.T_cam_from_obj, q.K, q.box, self.box_points, mesh.center,
@@ -537,5 +611,7 @@ class PoseEstimator:
             if contrast < MIN_CROP_CONTRAST:
                 failed, msg = True, (f"the object crop has no contrast (grey-level std {contrast:.1f}): a blank or "
                                      "saturated image, or a box on a featureless area")
-        return PoseResult(best.T_cam_from_obj, best.score, best.n_inliers, failed, msg, best.view, best.roll,
-                          confidence, distinct, timings, warnings=warns)
+        res = PoseResult(best.T_cam_from_obj, best.score, best.n_inliers, failed, msg, best.view, best.roll,
+                         confidence, distinct, timings, warnings=warns, candidates=list(hyps))
+        res.confidence_calibrated = bool(aligned and len(ac.confidence) == 3)
+        return res

@@ -12,8 +12,8 @@ import numpy as np
 
 from pixie._version import __version__
 
-__all__ = ["Hypothesis", "PoseResult", "set_confidences", "FRAME", "SCORE_NOTE", "CONFIDENCE_NOTE", "NO_BOX_MESSAGE",
-           "NO_BOX_WHY", "no_box_message"]
+__all__ = ["Hypothesis", "PoseResult", "set_confidences", "FRAME", "SCORE_NOTE", "CONFIDENCE_NOTE", "CALIBRATED_NOTE",
+           "NO_BOX_MESSAGE", "NO_BOX_WHY", "no_box_message"]
 
 FRAME = ("OpenCV camera (x right, y down, z forward); T_cam_from_obj maps object points (mm, the mesh's frame) "
          "to camera points: x_cam = R x_obj + t")
@@ -23,6 +23,9 @@ SCORE_NOTE = ("support of the pose: summed match similarity of its PnP inliers a
 CONFIDENCE_NOTE = ("score / (score + the best distinct alternative's score): how much a hypothesis stands out, "
                    "0.5 = a tie. Not calibrated: it is not a probability that the pose is correct")
 
+CALIBRATED_NOTE = ("estimated probability that the pose is right (ADD(-S) < 0.1 diameter), from its aligned edge fit "
+                   "and its margin over the best distinct alternative; calibrated on LM-O dev photos with ground-truth "
+                   "boxes (bench/RESULTS.md, 'Confidence'): other objects, cameras or boxes may be calibrated differently")
 
 NO_BOX_WHY = "pixie does not guess where the object is (the box sets the crop and the object's distance)"
 
@@ -41,8 +44,9 @@ class Hypothesis:
     """One candidate pose: from reference (view, roll), with its PnP support; built with keywords only.
 
     Every score is its own field and kept: ``match_score`` (the matcher's: PnP support, :data:`SCORE_NOTE`),
-    ``edge`` and ``region`` (shape-cue agreement), ``fused`` (their fusion, ``pixie.cues.shape.fused_score``).
-    ``score`` is the ranking score: the matcher's until shape verification, then the fused one.
+    ``edge`` and ``region`` (shape-cue agreement), ``fused`` (their fusion, ``pixie.cues.shape.fused_score``),
+    ``fit`` (the aligned edge fit, ``config.align``). ``score`` is the ranking score: the matcher's until shape
+    verification, then the fused one, then ``fused + w_fit * fit`` for the aligned candidates.
     """
 
     T_cam_from_obj: np.ndarray
@@ -62,6 +66,8 @@ class Hypothesis:
     edge: float = float("nan")  # edge agreement (pixie.cues.shape), when verified
     region: float = float("nan")  # region agreement, when verified
     fused: float = float("nan")  # the fused verification score (the ranking ``score`` once verified)
+    fit: float = float("nan")  # aligned edge fit (pixie.cues.edge_align.edge_fit), when config.align scored it;
+    # then ``score`` = fused + align.w_fit * fit
     terms: dict = field(default_factory=dict)  # every verification term (pixie.cues.shape.ShapeCues.verify_terms)
     matcher_best: bool = False  # the matcher's own choice (what the pipeline returns without shape cues)
 
@@ -94,6 +100,8 @@ class PoseResult:
     config_digest: str | None = None
     device: str | None = None
     warnings: list[str] = field(default_factory=list)  # unusual but accepted inputs (intrinsics for the image size)
+    candidates: list[Hypothesis] = field(default_factory=list, repr=False)  # every ranked hypothesis (studies; not saved)
+    confidence_calibrated: bool = False  # confidence is the calibrated probability (config.align.confidence)
 
     def to_dict(self) -> dict:
         """Everything as JSON-able data (poses as nested lists, mm)."""
@@ -108,7 +116,8 @@ class PoseResult:
             "T_cam_from_obj": None if self.T_cam_from_obj is None else self.T_cam_from_obj.tolist(),
             "failed": self.failed, "message": self.message,
             "score": self.score, "score_note": SCORE_NOTE,
-            "confidence": self.confidence, "confidence_note": CONFIDENCE_NOTE,
+            "confidence": self.confidence,
+            "confidence_note": CALIBRATED_NOTE if self.confidence_calibrated else CONFIDENCE_NOTE,
             "n_inliers": self.n_inliers, "view": self.view, "roll": self.roll,
             "K": None if self.K is None else np.asarray(self.K).tolist(),
             "box": box,

@@ -168,6 +168,42 @@ def depth_from_box(T: np.ndarray, K: np.ndarray, points: np.ndarray, box_xyxy: n
     return out
 
 
+def depth_from_visible_sides(T: np.ndarray, K: np.ndarray, points: np.ndarray, box_xyxy: np.ndarray,
+                             tol_px: float = 2.0, iterations: int = 3) -> np.ndarray:
+    """Distance (and image position) of a pose from the box sides that are not occluded.
+
+    The pose's full projected box is compared with the observed box side by side: a side more than ``tol_px``
+    inside the projection is taken as cut by an occluder and ignored. The object is then scaled about the
+    image of its centre and shifted (least squares over the kept sides: ``side = c + d + s (side0 - c)``);
+    with no complete pair of opposite sides the scale stays as it is and only the shift is fitted. Applied
+    ``iterations`` times (perspective makes box size only nearly inverse to distance).
+    """
+    out = np.asarray(T, np.float64).copy()
+    box = np.asarray(box_xyxy, np.float64)
+    Rc = out[:3, :3] @ (0.5 * (points.min(axis=0) + points.max(axis=0)))
+    for _ in range(max(1, iterations)):
+        pb = projected_box(out, K, points)
+        if not np.all(np.isfinite(pb)) or pb[2] - pb[0] < 1 or pb[3] - pb[1] < 1:
+            return np.asarray(T, np.float64)
+        obs = box[[0, 2, 1, 3]]  # x0, x1, y0, y1
+        prj = pb[[0, 2, 1, 3]]
+        # an observed side inside the projection by more than tol: cut by an occluder
+        keep = np.array([obs[0] - prj[0], prj[1] - obs[1], obs[2] - prj[2], prj[3] - obs[3]]) <= tol_px
+        ratios = [(obs[2 * k + 1] - obs[2 * k]) / (prj[2 * k + 1] - prj[2 * k]) for k in (0, 1) if keep[2 * k] and keep[2 * k + 1]]
+        s = float(np.mean(ratios)) if ratios else 1.0
+        C = out[:3, :3] @ (0.5 * (points.min(axis=0) + points.max(axis=0))) + out[:3, 3]
+        uvC = np.array([K[0, 0] * C[0] / C[2] + K[0, 2], K[1, 1] * C[1] / C[2] + K[1, 2]])
+        new_c = uvC.copy()
+        for k in (0, 1):  # scale about the box centre, then shift onto the kept sides
+            mid = 0.5 * (prj[2 * k] + prj[2 * k + 1])
+            sides = [obs[j] - (mid + s * (prj[j] - mid)) for j in (2 * k, 2 * k + 1) if keep[j]]
+            new_c[k] = mid + s * (uvC[k] - mid) + (float(np.mean(sides)) if sides else 0.0)
+        z_new = C[2] / max(s, 1e-6)
+        Cn = np.array([(new_c[0] - K[0, 2]) / K[0, 0] * z_new, (new_c[1] - K[1, 2]) / K[1, 1] * z_new, z_new])
+        out[:3, 3] = Cn - Rc
+    return out
+
+
 # ------------------------------------------------------------------------------------------------ scoring
 
 

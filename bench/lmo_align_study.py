@@ -1,0 +1,130 @@
+"""The alignment stage on cached pipeline hypotheses: compare ``config.align`` variants on the same LM-O starts.
+
+Usage::
+
+    PYTHONPATH=src .venv/bin/python bench/lmo_align_study.py [--max-targets 48] [--preset default] \
+        [--variant NAME:align.key=value,align.key=value ...] [--out out/bench/lmo_align_study.json]
+
+Stage 1 (cached in ``out/bench/lmo_align_study/<hash>.pkl``, keyed by the preset, the targets and the code tag): the
+pipeline up to and including the shape stage (``PoseEstimator.estimate`` with ``align.enabled=false``) per target,
+keeping every hypothesis. Stage 2, per variant: :meth:`PoseEstimator.align_stage` on copies of those hypotheses;
+the chosen pose is scored (ADD(-S)<0.1d, rotation error) and every aligned candidate's correctness recorded. The
+row ``no alignment`` is the cached pipeline's own choice. Prints one table (hits, share, any aligned candidate
+right, median rotation error, seconds per target of the stage).
+"""
+
+from __future__ import annotations
+
+import argparse
+import copy
+import hashlib
+import json
+import pickle
+import time
+from pathlib import Path
+
+import numpy as np
+
+import common as L  # noqa: E402  (bench/common.py: targets, object cache, presets)
+
+REPO = L.REPO
+
+from pixie.config import PixieConfig  # noqa: E402
+from pixie.app.runner import make_matcher  # noqa: E402
+from pixie.pipeline.estimator import PoseEstimator, Query  # noqa: E402
+from pixie.pipeline.query import check_bbox  # noqa: E402
+
+TAG = "s7-1"
+
+
+def stage1(ds, objects, targets, cfg, cache: Path) -> list[dict]:
+    if cache.is_file():
+        return pickle.loads(cache.read_bytes())
+    matcher = make_matcher(cfg)
+    out = []
+    ests = {}
+    for i, t in enumerate(targets):
+        if t.obj_id not in ests:
+            ests[t.obj_id] = PoseEstimator(objects.refs(cfg, t.obj_id, matcher), cfg, matcher=matcher)
+        est = ests[t.obj_id]
+        g = L.gt_instance(ds, t)
+        img = ds.load_rgb(t.scene_id, t.im_id)
+        K = ds.camera(t.scene_id, t.im_id).K
+        res = est.estimate(img, K, bbox=g.box_visib)
+        out.append({"target": (t.scene_id, t.im_id, t.obj_id), "t": t, "hyps": res.candidates, "box": g.box_visib,
+                    "best_match": max([h.match_score for h in res.candidates], default=0.0)})
+        if (i + 1) % 12 == 0:
+            print(f"  stage 1: {i + 1}/{len(targets)}", flush=True)
+    cache.parent.mkdir(parents=True, exist_ok=True)
+    cache.write_bytes(pickle.dumps(out))
+    return out
+
+
+def main(argv=None) -> int:
+    ap = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
+    ap.add_argument("--dataset", type=Path, default=L.DEFAULT_DATASET)
+    ap.add_argument("--max-targets", type=int, default=48)
+    ap.add_argument("--preset", default="default")
+    ap.add_argument("--variant", action="append", default=[])
+    ap.add_argument("--out", type=Path, default=REPO / "out/bench/lmo_align_study.json")
+    args = ap.parse_args(argv)
+    ds = L.BopDataset(args.dataset)
+    objects = L.ObjectCache(ds)
+    targets = L.select_targets(ds, args.max_targets)
+    base = PixieConfig.from_preset(args.preset).apply_overrides(["align.enabled=false"])
+    key = hashlib.sha256(json.dumps([TAG, args.preset, base.digest(), [(t.scene_id, t.im_id, t.obj_id) for t in targets]],
+                                    default=str).encode()).hexdigest()[:12]
+    cached = stage1(ds, objects, targets, base, REPO / "out/bench/lmo_align_study" / f"{key}.pkl")
+    variants = [("no alignment", None), ("default", [])] + [(v.partition(":")[0], L.parse_config_arg(v)[1])
+                                                           for v in args.variant]
+    rows = []
+    print(f"{len(cached)} targets (preset {args.preset}, stage-1 cache {key})")
+    print("| variant | ADD(-S)<0.1d | any aligned right | med rot° | s/target |")
+    print("|---|---|---|---|---|")
+    ests: dict[int, PoseEstimator] = {}
+    for name, overrides in variants:
+        hits, anyr, rots, secs, per = 0, 0, [], 0.0, []
+        cfg = PixieConfig.from_preset(args.preset).apply_overrides(["align.enabled=true"] + (overrides or []))
+        for rec in cached:
+            sid, iid, oid = rec["target"]
+            od = objects.eval_data(oid)
+            g = L.gt_instance(ds, rec["t"])
+            if overrides is None:
+                best = rec["hyps"][0]
+                e = L.pose_errors(od, best.T_cam_from_obj, g.T_cam_from_obj)
+                hits += bool(e["add_ok"])
+                rots.append(e["rot_err"])
+                per.append(bool(e["add_ok"]))
+                continue
+            if oid not in ests:
+                ests[oid] = PoseEstimator(objects.refs(base, oid, make_matcher(base)), base)
+            est = ests[oid]
+            est.cfg = copy.deepcopy(cfg)
+            img = ds.load_rgb(sid, iid)
+            K = ds.camera(sid, iid).K
+            box = check_bbox(rec["box"], img.shape[:2])
+            q = Query(img, K, box, None, [], [])
+            q.edges = est._shape.query(img, box) if est._shape is not None else None
+            q.best_match = rec["best_match"]
+            t0 = time.perf_counter()
+            hyps = est.align_stage(q, copy.deepcopy(rec["hyps"]))
+            secs += time.perf_counter() - t0
+            e = L.pose_errors(od, hyps[0].T_cam_from_obj, g.T_cam_from_obj)
+            hits += bool(e["add_ok"])
+            per.append(bool(e["add_ok"]))
+            rots.append(e["rot_err"])
+            anyr += any(L.pose_errors(od, h.T_cam_from_obj, g.T_cam_from_obj)["add_ok"]
+                        for h in hyps if h.source in ("aligned", "flip"))
+        n = len(cached)
+        rows.append({"variant": name, "overrides": overrides, "hits": hits, "n": n, "any": anyr,
+                     "med_rot": float(np.median(rots)), "s_per_target": secs / n, "per_target": per})
+        print(f"| {name} | {hits}/{n} ({100 * hits / n:.1f} %) | {anyr} | {np.median(rots):.1f} | {secs / n:.2f} |",
+              flush=True)
+    args.out.parent.mkdir(parents=True, exist_ok=True)
+    args.out.write_text(json.dumps({"args": vars(args) | {"dataset": str(args.dataset), "out": str(args.out)},
+                                    "rows": rows}, indent=1, default=str))
+    return 0
+
+
+if __name__ == "__main__":
+    raise SystemExit(main())

@@ -1,0 +1,449 @@
+"""Edge-based 6-DoF alignment of a pose to the photo (the D2CO / FDCM family of directional chamfer fits).
+
+Photo side (:mod:`pixie.cues.edge_photo`, once per query): sub-pixel colour-Canny edges of a crop around the box in
+16 orientation bins, one distance transform per bin. Correspondences (``search``): each model point takes
+either the nearest photo edge in a bin within ``max_bin_gap`` of its own orientation (``'nearest'``, the
+directional chamfer distance of Liu et al., CVPR 2010, each bin away costing ``bin_penalty`` px) or the nearest
+such edge *along its normal* (``'normal'``, RAPID-style 1D search; the default), optionally only across a drop
+of the colour foreground posterior (``min_contrast``).
+
+Model side: the hypothesis is rendered in the crop's own camera and its silhouette and crease points are kept
+with their 3D object points (:func:`pixie.references.templates.view_points`); it is re-rendered twice per truncation level
+(visibility changes). Silhouette points are moved half a render pixel outwards (the boundary pixel's centre
+lies inside the true outline by that much on average).
+
+Solver: Levenberg–Marquardt on se(3) (rotation about the object's centre, translation in the camera frame) on
+point-to-line residuals ``g . (p - e)`` (``g`` the photo edge's gradient direction at its sub-pixel position
+``e``) with a Tukey biweight whose scale follows the schedule (8 → 4 → 2 px: graduated non-convexity). A model
+point outside the given box (+ a margin) or the mask is occluded by definition and dropped. The box sides are
+residuals too (``w_box``): a projection that falls short of a visible side costs quadratically, one that reaches
+past it (occlusion) only within the Tukey scale, so depth, rotation and translation are refined jointly and an
+occluded side no longer sets depth.
+
+The fit of a pose (:func:`edge_fit`) is the share of its visible model contour points within ``fit_px`` of a
+same-orientation photo edge; it predicts whether a pose is right (the estimator's calibrated confidence).
+
+>>> pe = photo_edges(image, K, box_xyxy)                                  # once per photo
+>>> res = align(renderer, pe, T0, hull=mesh.hull_vertices, w_box=1.0)    # AlignResult: pose, fit, iterations
+>>> fit = edge_fit(renderer, pe, res.T_cam_from_obj)                      # EdgeFit
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass, field
+
+import cv2
+import numpy as np
+
+from pixie.cues.edge_photo import PhotoEdges, photo_edges
+from pixie.cues.region import band, posterior
+from pixie.geometry.camera import make_T
+from pixie.geometry.render import Renderer
+from pixie.geometry.rotations import rodrigues
+from pixie.references.templates import CREASE, SILHOUETTE, view_points
+
+__all__ = ["PhotoEdges", "AlignResult", "EdgeFit", "photo_edges", "model_points", "align", "edge_fit",
+           "flip_twins"]
+
+
+@dataclass(kw_only=True)
+class EdgeFit:
+    """How well a pose's contour agrees with the photo's edges (crop px of :class:`PhotoEdges`).
+
+    Attributes
+    ----------
+    share : share of visible model contour points with a same-orientation edge within ``fit_px``
+    silhouette_share : the same for silhouette points only
+    visible : share of the model's contour points inside the allowed region (box + margin, mask)
+    mean_dist : mean truncated directional chamfer distance of the visible points, px
+    n_points : visible points
+    """
+
+    share: float
+    silhouette_share: float
+    visible: float
+    mean_dist: float
+    n_points: int
+
+    def as_dict(self) -> dict[str, float]:
+        return {"fit": self.share, "fit_silhouette": self.silhouette_share, "fit_visible": self.visible,
+                "fit_dist": self.mean_dist}
+
+
+@dataclass(kw_only=True)
+class AlignResult:
+    """The aligned pose and its fit."""
+
+    T_cam_from_obj: np.ndarray
+    T_init: np.ndarray
+    fit: EdgeFit
+    iterations: int
+    converged: bool
+    history: list[float] = field(default_factory=list)  # robust cost after each level
+
+
+# ------------------------------------------------------------------------------------------ model side
+
+
+@dataclass(kw_only=True)
+class ModelPoints:
+    """Contour points of one render: object points, their kind, 2D orientation and outward offset."""
+
+    xyz: np.ndarray  # (N, 3) object frame, mm
+    kind: np.ndarray  # (N,) SILHOUETTE / CREASE
+    ori: np.ndarray  # (N,) unsigned orientation of the edge's gradient at render time, radians
+    offset: np.ndarray  # (N, 2) crop px added to the projection (silhouette: half a pixel outwards)
+    outward: np.ndarray  # (N, 2) unit outward normal of silhouette points, 0 for creases
+    T_render: np.ndarray  # the pose they were rendered at
+    mask: np.ndarray  # (size, size) bool, the render's silhouette
+
+
+def model_points(renderer: Renderer, T: np.ndarray, K: np.ndarray, size: int, n_points: int = 240,
+                 crease_share: float = 0.3) -> ModelPoints | None:
+    """Silhouette and crease points of the object rendered at ``T`` in a ``size`` x ``size`` camera ``K``."""
+    r = renderer.render(T, K, size, size)
+    m = r.mask
+    if m.sum() < 20:
+        return None
+    vp = view_points(r.depth, r.normals, K, T, n_points, crease_share, n_outline=8)
+    if len(vp["kind"]) < 6:
+        return None
+    P = np.rint(vp["xy"] + K[:2, 2]).astype(np.int64)
+    kind = vp["kind"].astype(np.int8)
+    xyz = r.xyz[P[:, 1], P[:, 0]].astype(np.float64)
+    ori = vp["ori"]
+    # outward normal of the silhouette: minus the smoothed mask's gradient
+    mf = cv2.GaussianBlur(m.astype(np.float32), (0, 0), 1.0)
+    gx = cv2.Sobel(mf, cv2.CV_32F, 1, 0, ksize=3)[P[:, 1], P[:, 0]]
+    gy = cv2.Sobel(mf, cv2.CV_32F, 0, 1, ksize=3)[P[:, 1], P[:, 0]]
+    n = -np.stack([gx, gy], 1).astype(np.float64)
+    n /= np.maximum(np.linalg.norm(n, axis=1, keepdims=True), 1e-9)
+    sil = (kind == SILHOUETTE)[:, None]
+    return ModelPoints(xyz=xyz, kind=kind, ori=np.asarray(ori, np.float64), offset=np.where(sil, 0.5 * n, 0.0),
+                       outward=np.where(sil, n, 0.0), T_render=np.asarray(T, np.float64).copy(), mask=m)
+
+
+def foreground_map(pe: PhotoEdges, mask: np.ndarray, band_frac: float = 0.15) -> np.ndarray:
+    """(size, size) float32 foreground posterior of every crop pixel from the colours inside ``mask`` (the
+    visible part: within the allowed region) against a band around it (:func:`pixie.region.posterior`)."""
+    inside = mask & pe.allowed
+    w = max(int(round(band_frac * max(pe.box[2] - pe.box[0], pe.box[3] - pe.box[1]))), 2)
+    outside = band(mask, w, pe.valid)
+    if inside.sum() < 10 or outside.sum() < 10:
+        return np.full(mask.shape, 0.5, np.float32)
+    return posterior(pe.colour, inside, outside, 512)[pe.colour].astype(np.float32)
+
+
+# ------------------------------------------------------------------------------------------ matching
+
+
+def _match(pe: PhotoEdges, xy: np.ndarray, ori: np.ndarray, max_bin_gap: int,
+           bin_penalty: float) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """Directional chamfer match of points ``xy`` (crop px) with orientations ``ori``.
+
+    Returns
+    -------
+    cost : (N,) distance + bin_penalty * bin gap of the best edge (1e4 where none / off the crop)
+    edge : (N,) index into ``pe.edge_xy`` (-1 where none)
+    inside : (N,) the point lies in the allowed region
+    """
+    S, B = pe.size, pe.n_bins
+    xi, yi = np.rint(xy[:, 0]).astype(int), np.rint(xy[:, 1]).astype(int)
+    ok = (xi >= 0) & (xi < S) & (yi >= 0) & (yi < S)
+    xi, yi = np.clip(xi, 0, S - 1), np.clip(yi, 0, S - 1)
+    inside = ok & pe.allowed[yi, xi]
+    b0 = (np.floor(np.mod(ori, np.pi) / (np.pi / B) + 0.5).astype(int)) % B
+    best = np.full(len(xy), 1e4)
+    edge = np.full(len(xy), -1, np.int64)
+    for gap in range(-max_bin_gap, max_bin_gap + 1):
+        b = (b0 + gap) % B
+        d = pe.dist[b, yi, xi] + bin_penalty * abs(gap)
+        e = pe.nearest[b, yi, xi]
+        upd = (d < best) & (e >= 0)
+        best = np.where(upd, d, best)
+        edge = np.where(upd, e, edge)
+    best[~ok] = 1e4
+    edge[~ok] = -1
+    return best, edge, inside
+
+
+def _match_normal(pe: PhotoEdges, xy: np.ndarray, ori: np.ndarray, reach: float, max_bin_gap: int,
+                  fg: np.ndarray | None = None, outward: np.ndarray | None = None, min_contrast: float = 0.0,
+                  probe_px: float = 2.0) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """Match each point to the nearest same-orientation photo edge *along its normal* (RAPID-style 1D search).
+
+    With a foreground map ``fg`` and outward normals (silhouette points), an edge only counts for a silhouette
+    point when the foreground posterior ``probe_px`` inside it exceeds the one outside by ``min_contrast``
+    (an object boundary, not clutter or texture). Returns cost (|offset| along the normal, px; 1e4 where none
+    within ``reach``), edge index (-1: none) and whether the point lies in the allowed region, as :func:`_match`.
+    """
+    S, B = pe.size, pe.n_bins
+    if len(pe.edge_xy) == 0:  # a photo crop without edges: nothing to match
+        return np.full(len(xy), 1e4), np.full(len(xy), -1, np.int64), np.zeros(len(xy), bool)
+    n = np.stack([np.cos(ori), np.sin(ori)], 1)
+    steps = np.arange(0.0, reach + 1e-9, 0.5)
+    offs = np.concatenate([[0.0], np.stack([steps[1:], -steps[1:]], 1).ravel()])  # 0, +.5, -.5, +1, -1, ...
+    q = xy[:, None, :] + offs[None, :, None] * n[:, None, :]  # (N, O, 2)
+    qx, qy = np.rint(q[..., 0]).astype(int), np.rint(q[..., 1]).astype(int)
+    okq = (qx >= 0) & (qx < S) & (qy >= 0) & (qy < S)
+    qx, qy = np.clip(qx, 0, S - 1), np.clip(qy, 0, S - 1)
+    b0 = (np.floor(np.mod(ori, np.pi) / (np.pi / B) + 0.5).astype(int)) % B
+    hit = np.full(qx.shape, -1, np.int64)
+    for gap in sorted(range(-max_bin_gap, max_bin_gap + 1), key=abs):
+        b = ((b0 + gap) % B)[:, None]
+        e = pe.index[b, qy, qx]
+        hit = np.where((hit < 0) & (e >= 0) & okq, e, hit)
+    if fg is not None and outward is not None and min_contrast > 0:
+        sil = np.abs(outward).sum(axis=1) > 0
+        ex = pe.edge_xy[np.maximum(hit, 0)]  # (N, O, 2)
+        o = outward[:, None, :]
+        a = np.clip(np.rint(ex - probe_px * o).astype(int), 0, S - 1)
+        b = np.clip(np.rint(ex + probe_px * o).astype(int), 0, S - 1)
+        contrast = fg[a[..., 1], a[..., 0]] - fg[b[..., 1], b[..., 0]]
+        hit = np.where(sil[:, None] & (contrast < min_contrast), -1, hit)
+    has = hit >= 0
+    first = np.argmax(has, axis=1)
+    any_ = has.any(axis=1)
+    edge = np.where(any_, hit[np.arange(len(xy)), first], -1)
+    cost = np.where(any_, np.abs(offs[first]), 1e4)
+    xi, yi = np.rint(xy[:, 0]).astype(int), np.rint(xy[:, 1]).astype(int)
+    ok = (xi >= 0) & (xi < S) & (yi >= 0) & (yi < S)
+    inside = ok & pe.allowed[np.clip(yi, 0, S - 1), np.clip(xi, 0, S - 1)]
+    return cost, edge, inside
+
+
+def _project(K: np.ndarray, Xc: np.ndarray) -> np.ndarray:
+    z = np.maximum(Xc[:, 2], 1e-6)
+    return np.stack([K[0, 0] * Xc[:, 0] / z + K[0, 2], K[1, 1] * Xc[:, 1] / z + K[1, 2]], 1)
+
+
+def _roll_delta(R_now: np.ndarray, R_then: np.ndarray) -> float:
+    """Angle (radians) of the rotation R_now R_then^T about the camera's optical axis (its in-plane part)."""
+    D = R_now @ R_then.T
+    return float(np.arctan2(D[1, 0] - D[0, 1], D[0, 0] + D[1, 1]))
+
+
+def _lm_step(K: np.ndarray, T: np.ndarray, mp: ModelPoints, pe: PhotoEdges, tau: float, cfg: dict,
+             lam: float) -> tuple[np.ndarray | None, float, int]:
+    """One Levenberg–Marquardt step; returns (new T or None, robust cost at T, points used)."""
+    R, t = T[:3, :3], T[:3, 3]
+    Xc = mp.xyz @ R.T + t
+    p = _project(K, Xc) + mp.offset
+    ori = mp.ori + _roll_delta(R, mp.T_render[:3, :3])
+    cost, edge, inside = _matcher(pe, p, ori, tau, cfg, mp)
+    use = inside & (edge >= 0) & (cost < tau)
+    if use.sum() < 6:
+        return None, float("inf"), int(use.sum())
+    e = pe.edge_xy[edge[use]]
+    g = pe.edge_dir[edge[use]]
+    X = Xc[use]
+    r = np.einsum("ij,ij->i", g, p[use] - e)
+    w = (1.0 - (r / tau) ** 2) ** 2 * (np.abs(r) < tau)
+    w = w * np.where(mp.kind[use] == CREASE, cfg["crease_weight"], 1.0)
+    c = R @ cfg["center"] + t  # rotation about the object's centre
+    J = _jacobian(K, X, g, c)
+    H = J.T @ (J * w[:, None])
+    b = J.T @ (w * r)
+    rho = float(np.sum(tau ** 2 / 6 * (1 - (1 - (r / tau) ** 2) ** 3 * (np.abs(r) < tau))))
+    if cfg["w_box"] > 0:
+        rb, wb, Jb = _box_terms(K, T, cfg, tau)
+        wb = wb * cfg["w_box"] * float(use.sum())
+        H += Jb.T @ (Jb * wb[:, None])
+        b += Jb.T @ (wb * rb)
+    if cfg["rot_prior"] > 0:  # pull the rotation towards the start's: a deviation of 1 rad costs rot_prior px² per point
+        wsum = float(w.sum())
+        H[:3, :3] += cfg["rot_prior"] * wsum * np.eye(3)
+        b[:3] += cfg["rot_prior"] * wsum * _rotvec(R @ cfg["R0"].T)
+    if cfg["dof"] == "t":  # translation only
+        H[:3, :] = 0.0
+        H[:, :3] = 0.0
+        H[:3, :3] = np.eye(3)
+        b[:3] = 0.0
+    A = H + lam * np.diag(np.diag(H) + 1e-9)
+    try:
+        d = -np.linalg.solve(A, b)
+    except np.linalg.LinAlgError:
+        return None, rho, int(use.sum())
+    ang = float(np.linalg.norm(d[:3]))
+    dR = rodrigues(d[:3], ang) if ang > 1e-12 else np.eye(3)
+    Rn = dR @ R
+    tn = c + d[3:] - Rn @ cfg["center"]
+    return make_T(Rn, tn), rho, int(use.sum())
+
+
+def _jacobian(K: np.ndarray, X: np.ndarray, a: np.ndarray, c: np.ndarray) -> np.ndarray:
+    """(n, 6) derivatives of ``a . p`` (``p`` the projection of camera points ``X``, ``a`` (n, 2)) with respect to
+    (omega, v): ``X' = exp(omega) (X - c) + c + v`` (rotation about ``c``)."""
+    z = np.maximum(X[:, 2], 1e-6)
+    fx, fy = K[0, 0], K[1, 1]
+    du = np.stack([fx / z, np.zeros_like(z), -fx * X[:, 0] / z ** 2], 1)
+    dv = np.stack([np.zeros_like(z), fy / z, -fy * X[:, 1] / z ** 2], 1)
+    dr_dX = a[:, :1] * du + a[:, 1:] * dv
+    return np.concatenate([np.cross(X - c, dr_dX), dr_dX], 1)  # (Y x dr) . omega = dr . (omega x Y)
+
+
+def _box_terms(K: np.ndarray, T: np.ndarray, cfg: dict, tau: float) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """Residuals, weights and Jacobian rows of the four box sides.
+
+    ``d`` = how far the pose's projected box (its hull vertices) reaches past each observed side. A projection
+    that falls short of a visible side (d < 0) is impossible and costs quadratically; one that reaches past it
+    (d > 0) may be occlusion, so it costs with a Tukey biweight of scale ``tau`` (small overshoots pulled in,
+    large ones taken as an occluded side and ignored).
+    """
+    Xc = cfg["hull"] @ T[:3, :3].T + T[:3, 3]
+    p = _project(K, Xc)
+    x0, y0, x1, y1 = cfg["box_sides"]
+    idx = [int(np.argmin(p[:, 0])), int(np.argmax(p[:, 0])), int(np.argmin(p[:, 1])), int(np.argmax(p[:, 1]))]
+    a = np.array([[-1.0, 0.0], [1.0, 0.0], [0.0, -1.0], [0.0, 1.0]])
+    d = np.array([x0 - p[idx[0], 0], p[idx[1], 0] - x1, y0 - p[idx[2], 1], p[idx[3], 1] - y1])
+    w = np.where(d < 0, 1.0, (1.0 - (d / tau) ** 2) ** 2 * (d < tau))
+    c = T[:3, :3] @ cfg["center"] + T[:3, 3]
+    return d, w, _jacobian(K, Xc[idx], a, c)
+
+
+def _box_cost(K: np.ndarray, T: np.ndarray, cfg: dict, tau: float) -> float:
+    d, _, _ = _box_terms(K, T, cfg, tau)
+    rho = np.where(d < 0, 0.5 * d ** 2, tau ** 2 / 6 * (1 - (1 - np.minimum((d / tau) ** 2, 1.0)) ** 3))
+    return float(rho.sum())
+
+
+def _matcher(pe, p, ori, tau, cfg, mp=None):
+    if cfg["search"] == "normal":
+        fg = cfg.get("fg")
+        return _match_normal(pe, p, ori, tau, cfg["max_bin_gap"], fg, None if mp is None else mp.outward,
+                             cfg["min_contrast"])
+    return _match(pe, p, ori, cfg["max_bin_gap"], cfg["bin_penalty"])
+
+
+def _rotvec(R: np.ndarray) -> np.ndarray:
+    """Rotation vector (axis * angle, radians) of ``R``."""
+    return cv2.Rodrigues(np.asarray(R, np.float64))[0].ravel()
+
+
+def _robust_cost(K, T, mp, pe, tau, cfg) -> tuple[float, int]:
+    R, t = T[:3, :3], T[:3, 3]
+    p = _project(K, mp.xyz @ R.T + t) + mp.offset
+    ori = mp.ori + _roll_delta(R, mp.T_render[:3, :3])
+    cost, edge, inside = _matcher(pe, p, ori, tau, cfg, mp)
+    use = inside & (edge >= 0)
+    if not use.any():
+        return float("inf"), 0
+    e, g = pe.edge_xy[edge[use]], pe.edge_dir[edge[use]]
+    r = np.einsum("ij,ij->i", g, p[use] - e)
+    r = np.where(cost[use] < tau, r, tau)  # unmatched count as truncated
+    rho = tau ** 2 / 6 * (1 - (1 - np.minimum((r / tau) ** 2, 1.0)) ** 3)
+    w = np.where(mp.kind[use] == CREASE, cfg["crease_weight"], 1.0)
+    # points that left the visible region count as truncated too, so a pose cannot win by hiding its points
+    n_out = int((~use).sum())
+    prior = cfg["rot_prior"] * float(np.sum(_rotvec(R @ cfg["R0"].T) ** 2)) / 2 if cfg["rot_prior"] > 0 else 0.0
+    if cfg["w_box"] > 0:
+        prior += cfg["w_box"] * _box_cost(K, T, cfg, tau)
+    return float((np.sum(rho * w) + cfg["out_cost"] * n_out * tau ** 2 / 6) / len(use)) + prior, int(use.sum())
+
+
+def align(renderer: Renderer, pe: PhotoEdges, T0: np.ndarray, center: np.ndarray | None = None,
+          schedule: tuple[float, ...] = (8.0, 4.0, 2.0), iters: int = 6, n_points: int = 240,
+          crease_weight: float = 0.5, crease_share: float = 0.3, max_bin_gap: int = 1, bin_penalty: float = 2.0,
+          fit_px: float = 1.5, rerender: int = 2, rot_prior: float = 0.0, dof: str = "6",
+          search: str = "normal", min_contrast: float = 0.0, w_box: float = 0.0,
+          hull: np.ndarray | None = None, coarse: PhotoEdges | None = None,
+          coarse_schedule: tuple[float, ...] = (8.0, 4.0), out_cost: float = 1.0) -> AlignResult:
+    """Levenberg–Marquardt alignment of ``T0`` (photo camera) to the photo's edges, coarse to fine.
+
+    Parameters
+    ----------
+    renderer : the object's renderer
+    pe : :func:`photo_edges` of the photo
+    T0 : (4, 4) starting pose (T_cam_from_obj, the photo's camera)
+    center : rotation centre in the object frame (default: the mesh's centre)
+    schedule : Tukey scales (crop px), one level each; the model is re-rendered ``rerender`` times per level
+    iters : LM iterations per level
+    rot_prior : pull towards the starting rotation: a deviation of 1 rad costs ``rot_prior`` px² per point
+    dof : '6' (rotation and translation) or 't' (translation only)
+    search : 'nearest' (directional chamfer: nearest same-orientation edge) or 'normal' (along the model normal)
+    min_contrast : with ``search='normal'``: silhouette points only take edges across which the foreground
+        posterior (colours inside the current silhouette against a band around it) drops by this much
+    w_box, hull : weight of each side of the given box against the contour points (its projection from the
+        object points ``hull``, e.g. ``mesh.hull_vertices``; see :func:`_box_terms`); 0 = the box is not used
+    out_cost : cost of a model point outside the allowed region (occluded), in units of a truncated point's
+    coarse, coarse_schedule : a coarser :func:`photo_edges` of the same photo (e.g. half ``object_px``) aligned first
+        over ``coarse_schedule`` (its crop px): a wider basin at the same Tukey scales
+    """
+    center = renderer.mesh.center if center is None else np.asarray(center, np.float64)
+    cfg = {"max_bin_gap": int(max_bin_gap), "bin_penalty": float(bin_penalty), "crease_weight": float(crease_weight),
+           "center": center, "rot_prior": float(rot_prior), "dof": str(dof), "search": str(search),
+           "min_contrast": float(min_contrast), "w_box": float(w_box) if hull is not None or w_box == 0 else 0.0,
+           "hull": None if hull is None else np.asarray(hull, np.float64), "box_sides": pe.box_sides,
+           "out_cost": float(out_cost), "R0": np.asarray(T0, np.float64)[:3, :3]}
+    T = np.asarray(T0, np.float64).copy()
+    history, n_it, converged = [], 0, False
+    levels = ([(coarse, tuple(coarse_schedule))] if coarse is not None else []) + [(pe, tuple(schedule))]
+    for lv, sched in levels:
+        cfg["box_sides"] = lv.box_sides
+        K = lv.K
+        for tau in sched:
+            for _ in range(max(rerender, 1)):
+                mp = model_points(renderer, T, K, lv.size, n_points, crease_share)
+                if mp is None:
+                    break
+                if min_contrast > 0:
+                    cfg["fg"] = foreground_map(lv, mp.mask)
+                lam = 1e-3
+                cur, _ = _robust_cost(K, T, mp, lv, tau, cfg)
+                for _ in range(max(1, iters // max(rerender, 1))):
+                    Tn, _, n_used = _lm_step(K, T, mp, lv, tau, cfg, lam)
+                    n_it += 1
+                    if Tn is None:
+                        break
+                    new, _ = _robust_cost(K, Tn, mp, lv, tau, cfg)
+                    if new <= cur:
+                        step = np.linalg.norm(Tn[:3, 3] - T[:3, 3])
+                        T, cur, lam = Tn, new, max(lam / 3, 1e-6)
+                        if step < 1e-3:
+                            converged = True
+                            break
+                    else:
+                        lam *= 10
+                        if lam > 1e4:
+                            break
+            history.append(cur if np.isfinite(cur) else float("nan"))
+    fit = edge_fit(renderer, pe, T, n_points=n_points, fit_px=fit_px, max_bin_gap=max_bin_gap)
+    return AlignResult(T_cam_from_obj=T, T_init=np.asarray(T0, np.float64), fit=fit, iterations=n_it,
+                       converged=converged, history=history)
+
+
+def edge_fit(renderer: Renderer, pe: PhotoEdges, T: np.ndarray, n_points: int = 240, fit_px: float = 1.5,
+             max_bin_gap: int = 1, crease_share: float = 0.3) -> EdgeFit:
+    """The aligned fit of pose ``T``: see :class:`EdgeFit`."""
+    mp = model_points(renderer, T, pe.K, pe.size, n_points, crease_share)
+    if mp is None:
+        return EdgeFit(share=0.0, silhouette_share=0.0, visible=0.0, mean_dist=float("inf"), n_points=0)
+    p = _project(pe.K, mp.xyz @ T[:3, :3].T + T[:3, 3]) + mp.offset
+    cost, edge, inside = _match(pe, p, mp.ori, max_bin_gap, 0.0)
+    if not inside.any():
+        return EdgeFit(share=0.0, silhouette_share=0.0, visible=0.0, mean_dist=float("inf"), n_points=0)
+    # distance to the matched edge's line (sub-pixel), not the pixel distance transform
+    d = np.full(len(p), 1e4)
+    ok = edge >= 0
+    d[ok] = np.abs(np.einsum("ij,ij->i", pe.edge_dir[edge[ok]], p[ok] - pe.edge_xy[edge[ok]]))
+    d = np.where(cost < fit_px + 1.0, np.minimum(d, cost), cost)
+    hit = d <= fit_px
+    sil = mp.kind == SILHOUETTE
+    vis_sil = inside & sil
+    return EdgeFit(share=float(hit[inside].mean()),
+                   silhouette_share=float(hit[vis_sil].mean()) if vis_sil.any() else 0.0,
+                   visible=float(inside.mean()), mean_dist=float(np.minimum(d[inside], 10.0).mean()),
+                   n_points=int(inside.sum()))
+
+
+# ------------------------------------------------------------------------------------------ pool helpers
+
+
+def flip_twins(T: np.ndarray, center: np.ndarray) -> list[np.ndarray]:
+    """The pose turned 180° about the camera's x and y axes through the object's centre (silhouette flips)."""
+    c = T[:3, :3] @ center + T[:3, 3]
+    out = []
+    for F in (np.diag([1.0, -1.0, -1.0]), np.diag([-1.0, 1.0, -1.0])):
+        R = F @ T[:3, :3]
+        out.append(make_T(R, c - R @ center))
+    return out

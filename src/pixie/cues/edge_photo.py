@@ -1,0 +1,176 @@
+"""The photo side of edge alignment: colour-gradient Canny edges of a crop around the object box, sub-pixel,
+split into orientation bins with one distance transform (and nearest-edge label) per bin.
+
+The crop is resampled so that the box's longer side spans ``object_px`` pixels; thresholds are in grey levels per
+*photo* pixel so the same edges are found whatever the resampling. :func:`pixie.geometry.camera.crop_intrinsics` gives the crop's pinhole camera.
+
+>>> pe = photo_edges(image, K, box_xyxy)          # once per photo; pe.K projects into the crop
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import cv2
+import numpy as np
+
+from pixie.cues.region import colour_index
+from pixie.geometry.camera import crop_intrinsics
+from pixie.pipeline.query import QueryCrop, square_crop
+
+__all__ = ["PhotoEdges", "photo_edges"]
+
+
+@dataclass(kw_only=True)
+class PhotoEdges:
+    """The photo's edges in a crop around the object box, ready for directional chamfer lookups.
+
+    Attributes
+    ----------
+    crop : the (unrotated) square crop; ``crop.A`` maps crop px to photo px
+    K : (3, 3) intrinsics of the crop's pixel grid
+    size : crop side, px
+    scale : photo px per crop px
+    n_bins : orientation bins over [0, pi)
+    dist : (n_bins, size, size) float32 distance (crop px) to the nearest edge pixel of each bin
+    nearest : (n_bins, size, size) int32 index into ``edge_xy`` of that nearest edge
+    index : (n_bins, size, size) int32 index into ``edge_xy`` of the edge at each pixel, -1 where none
+    edge_xy : (M, 2) float64 sub-pixel edge positions (crop px); edge_dir : (M, 2) unit gradient directions
+    edge_bin : (M,) int orientation bin of each edge
+    allowed : (size, size) bool, where model points count as visible (the box + margin, the mask, the photo)
+    box : (4,) the object box in crop px (x0, y0, x1, y1)
+    box_sides : (4,) the box's outer pixel edges in crop px, pixel-centre coordinates (x0 - 0.5, ..., y1 - 0.5 in
+        the photo): where the projected object's extremes lie when the box is exact
+    valid : (size, size) bool, crop pixels inside the photo
+    colour : (size, size) int32 joint RGB bin of each crop pixel (:func:`pixie.region.colour_index`)
+    """
+
+    crop: QueryCrop
+    K: np.ndarray
+    size: int
+    scale: float
+    n_bins: int
+    dist: np.ndarray
+    nearest: np.ndarray
+    index: np.ndarray
+    edge_xy: np.ndarray
+    edge_dir: np.ndarray
+    edge_bin: np.ndarray
+    allowed: np.ndarray
+    box: np.ndarray
+    box_sides: np.ndarray
+    valid: np.ndarray
+    colour: np.ndarray
+
+    def to_photo(self, xy: np.ndarray) -> np.ndarray:
+        return self.crop.to_original(xy)
+
+
+def _colour_gradients(image: np.ndarray, sigma: float) -> tuple[np.ndarray, np.ndarray]:
+    """Sobel gradients (x, y) of the colour channel of largest magnitude per pixel (float32, raw Sobel units)."""
+    img = image.astype(np.float32)
+    if sigma > 0:
+        img = cv2.GaussianBlur(img, (0, 0), sigma)
+    gx = cv2.Sobel(img, cv2.CV_32F, 1, 0, ksize=3)
+    gy = cv2.Sobel(img, cv2.CV_32F, 0, 1, ksize=3)
+    if img.ndim == 3:
+        ch = np.argmax(gx * gx + gy * gy, axis=2)[..., None]
+        gx = np.take_along_axis(gx, ch, 2)[..., 0]
+        gy = np.take_along_axis(gy, ch, 2)[..., 0]
+    return gx, gy
+
+
+def _subpixel(mag: np.ndarray, ys: np.ndarray, xs: np.ndarray, dx: np.ndarray, dy: np.ndarray) -> np.ndarray:
+    """Offsets (along the unit gradient ``(dx, dy)``) of the magnitude's parabola vertex through 3 samples."""
+    H, W = mag.shape
+    sx, sy = np.rint(dx).astype(int), np.rint(dy).astype(int)
+    x1, y1 = np.clip(xs + sx, 0, W - 1), np.clip(ys + sy, 0, H - 1)
+    x0, y0 = np.clip(xs - sx, 0, W - 1), np.clip(ys - sy, 0, H - 1)
+    m0, m1, mc = mag[y0, x0], mag[y1, x1], mag[ys, xs]
+    den = m0 - 2 * mc + m1
+    off = np.where(np.abs(den) > 1e-6, 0.5 * (m0 - m1) / np.where(np.abs(den) > 1e-6, den, 1.0), 0.0)
+    step = np.hypot(sx, sy)  # 1 or sqrt(2) px between the samples
+    return np.clip(off, -0.5, 0.5) * step
+
+
+def photo_edges(image: np.ndarray, K: np.ndarray, box_xyxy: np.ndarray, mask: np.ndarray | None = None,
+                object_px: float = 200.0, pad: float = 1.5, n_bins: int = 16, sigma: float = 1.0,
+                canny_low: float = 5.0, canny_high: float = 12.0, margin: float = 0.04,
+                margin_px: float = 3.0) -> PhotoEdges:
+    """Edges of the photo around ``box_xyxy`` (x0, y0, x1, y1), resampled so the box's longer side is ``object_px``.
+
+    Parameters
+    ----------
+    image : (H, W, 3) uint8 RGB
+    K : (3, 3) photo intrinsics
+    mask : optional (H, W) bool object mask: model points outside it (dilated by the margin) are occluded
+    object_px : the box's longer side in the crop, px
+    pad : crop side / box's longer side
+    n_bins : unsigned orientation bins
+    sigma : Gaussian blur of the crop before the gradients, px
+    canny_low, canny_high : hysteresis thresholds in grey levels per *photo* pixel (so the same edges are
+        found whatever the resampling)
+    margin, margin_px : the allowed region is the box grown by ``margin`` of its longer side + ``margin_px`` (photo px)
+    """
+    box = np.asarray(box_xyxy, np.float64)
+    L = float(max(box[2] - box[0], box[3] - box[1], 1.0))
+    size = int(round(object_px * pad))
+    crop = square_crop(image, box, pad, size)
+    Kc = crop_intrinsics(K, crop.A)
+    s = float(np.hypot(crop.A[0, 0], crop.A[1, 0]))  # photo px per crop px
+    valid = cv2.warpAffine(np.full(image.shape[:2], 255, np.uint8), crop.A, (size, size),
+                           flags=cv2.WARP_INVERSE_MAP | cv2.INTER_NEAREST, borderValue=0) > 0
+    gx, gy = _colour_gradients(crop.image, sigma)
+    # Sobel of a ramp of 1 grey level per crop px is 8; per photo px that ramp is 1/s levels
+    lo, hi = 8.0 * canny_low * s, 8.0 * canny_high * s
+    ex = cv2.Canny(np.clip(gx, -32767, 32767).astype(np.int16), np.clip(gy, -32767, 32767).astype(np.int16),
+                   lo, hi, L2gradient=True) > 0
+    ex &= cv2.erode(valid.astype(np.uint8), np.ones((5, 5), np.uint8)) > 0
+    ys, xs = np.nonzero(ex)
+    mag = np.hypot(gx, gy)
+    g = np.stack([gx[ys, xs], gy[ys, xs]], 1).astype(np.float64)
+    g /= np.maximum(np.linalg.norm(g, axis=1, keepdims=True), 1e-9)
+    off = _subpixel(mag, ys, xs, g[:, 0], g[:, 1])
+    exy = np.stack([xs, ys], 1).astype(np.float64) + off[:, None] * g
+    ang = np.mod(np.arctan2(g[:, 1], g[:, 0]), np.pi)
+    eb = (np.floor(ang / (np.pi / n_bins) + 0.5).astype(int)) % n_bins
+    dist = np.full((n_bins, size, size), 1e4, np.float32)
+    nearest = np.full((n_bins, size, size), -1, np.int32)
+    order = np.full((size, size), -1, np.int64)
+    order[ys, xs] = np.arange(len(xs))
+    for b in range(n_bins):
+        sel = eb == b
+        if not sel.any():
+            continue
+        src = np.ones((size, size), np.uint8)
+        src[ys[sel], xs[sel]] = 0
+        d, lab = cv2.distanceTransformWithLabels(src, cv2.DIST_L2, 5, labelType=cv2.DIST_LABEL_PIXEL)
+        # label -> the edge pixel that carries it
+        lut = np.full(int(lab.max()) + 1, -1, np.int64)
+        lut[lab[ys[sel], xs[sel]]] = order[ys[sel], xs[sel]]
+        dist[b] = d
+        nearest[b] = lut[lab]
+    # where model points count as visible
+    box_c = np.concatenate([_to_crop(crop, box[:2]), _to_crop(crop, box[2:])])
+    grow = (margin * L + margin_px) / s
+    xx = np.arange(size)
+    allowed = ((xx[None, :] >= box_c[0] - grow) & (xx[None, :] <= box_c[2] + grow)
+               & (xx[:, None] >= box_c[1] - grow) & (xx[:, None] <= box_c[3] + grow)) & valid
+    if mask is not None:
+        mc = cv2.warpAffine(np.asarray(mask, np.uint8), crop.A, (size, size),
+                            flags=cv2.WARP_INVERSE_MAP | cv2.INTER_NEAREST, borderValue=0)
+        k = max(int(round(2 * grow)) | 1, 3)
+        allowed &= cv2.dilate(mc, np.ones((k, k), np.uint8)) > 0
+    index = np.full((n_bins, size, size), -1, np.int32)
+    index[eb, ys, xs] = np.arange(len(xs))
+    return PhotoEdges(crop=crop, K=Kc, size=size, scale=s, n_bins=n_bins, dist=dist, nearest=nearest, index=index,
+                      edge_xy=exy, edge_dir=g, edge_bin=eb, allowed=allowed, box=box_c, valid=valid,
+                      box_sides=np.concatenate([_to_crop(crop, box[:2] - 0.5), _to_crop(crop, box[2:] - 0.5)]),
+                      colour=colour_index(crop.image))
+
+
+def _to_crop(crop: QueryCrop, uv: np.ndarray) -> np.ndarray:
+    M, b = crop.A[:, :2], crop.A[:, 2]
+    return np.linalg.solve(M, np.asarray(uv, np.float64) - b)
+
+
