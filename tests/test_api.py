@@ -60,8 +60,10 @@ def test_estimate_pose_from_files(part_files, tmp_path):
     assert np.array_equal(again.T_cam_from_obj, res.T_cam_from_obj)
     d = res.to_dict()
     assert d["units"] == "mm" and d["K"] == np.asarray(K).tolist() and d["mesh_sha256"]
-    assert 0.5 <= d["confidence"] <= 1.0 and "not calibrated" in d["confidence_note"].lower()
-    assert d["hypotheses"][0]["confidence"] == pytest.approx(d["confidence"])
+    # the alignment is on: the confidence is the calibrated probability (the ratio stays per hypothesis)
+    assert res.confidence_calibrated and 0.0 <= d["confidence"] <= 1.0
+    assert "probability" in d["confidence_note"].lower()
+    assert 0.5 <= d["hypotheses"][0]["confidence"] <= 1.0
 
 
 def test_estimate_pose_refuses_without_a_box(part_files):

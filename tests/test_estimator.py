@@ -76,10 +76,13 @@ def test_stages_reproduce_estimate_and_leave_no_state(query_est, query_results):
     assert corr and all(len(p2) == len(p3) == len(s) for p2, p3, s in corr.values())
     q.background = background_similarity([c[2] for c in corr.values()])
     hyps = query_est.select_views(q, query_est.solve(q, corr))
-    hyps = query_est.render_refine(q, hyps)
+    if query_est.cfg.refine.render_iters > 0:
+        hyps = query_est.render_refine(q, hyps)
     if query_est.cfg.shape.enabled:  # shape cues (default): edge candidates + verification after refinement
         hyps = query_est.shape_stage(q, hyps, {})
-    out = query_est.result(hyps)
+    if query_est.cfg.align.enabled:  # edge alignment (default): aligned candidates, selection on the fit
+        hyps = query_est.align_stage(q, hyps)
+    out = query_est.result(hyps, q=q)
     np.testing.assert_array_equal(out.T_cam_from_obj, res.T_cam_from_obj)
     assert out.score == res.score
     again = query_est.estimate(img, K_Q, bbox=bbox)

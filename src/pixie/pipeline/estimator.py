@@ -16,8 +16,10 @@ per-query record :class:`Query` (and returns new values), so studies can run, re
     q.background = background_similarity(...) # the query's background match similarity
     hyps = est.solve(q, corr)                  # PnP per candidate view, scored
     hyps = est.select_views(q, hyps)           # the paper's view selection (+ re-crop)
-    hyps = est.render_refine(q, hyps)          # render-at-estimate refinement
-    result = est.result(hyps, timings)
+    hyps = est.render_refine(q, hyps)          # render-at-estimate refinement (config.refine; off in 'default')
+    hyps = est.shape_stage(q, hyps, timings)   # edge templates + edge/region verification (config.shape)
+    hyps = est.align_stage(q, hyps)            # edge-based 6-DoF alignment, selection on the fit (config.align)
+    result = est.result(hyps, timings, q)
 
 The estimator keeps no per-query state: everything a query needs lives in its :class:`Query`, so one estimator
 can serve queries from several threads.
@@ -168,7 +170,7 @@ class PoseEstimator:
         self.box_points = refs.mesh.hull_vertices
         self._renderer = (Renderer(refs.mesh, smooth_normals=refs.config.smooth_normals)
                           if self.cfg.refine.render_iters > 0 else None)
-        self._align_renderer: Renderer | None = None
+        self._align_renderer = Renderer(refs.mesh, smooth_normals=True) if self.cfg.align.enabled else None
         self._shape = None
         if self.cfg.shape.enabled:
             self._shape = shape_cues(refs, self.cfg.shape)
@@ -490,9 +492,7 @@ class PoseEstimator:
         ``w_fit * terms['fit']``; every other hypothesis follows them in its previous order.
         """
         ac = self.cfg.align
-        if self._align_renderer is None:
-            self._align_renderer = Renderer(self.refs.mesh, smooth_normals=True)
-        ren = self._align_renderer
+        ren = self._align_renderer or Renderer(self.refs.mesh, smooth_normals=True)
         pe = photo_edges(q.image, q.K, q.box, q.mask, object_px=ac.object_px, canny_low=ac.canny_low,
                          canny_high=ac.canny_high)
         q.photo_edges = pe
