@@ -340,8 +340,9 @@ class AlignConfig(_Section):
     fit_px: float = 1.5  # aligned fit: a contour point is supported by an edge this close (crop px)
     w_fit: float = 1.0  # ranking score = the shape stage's fused score + w_fit * aligned fit
     # calibrated confidence = logistic(a + b * fit + c * margin) of the chosen pose (margin: its score minus the best
-    # distinct alternative's), fitted by bench/lmo_select.py on one half of LM-O dev; [] = the uncalibrated ratio
-    confidence: list[float] = field(default_factory=lambda: [-3.45, 8.78, 0.31])
+    # distinct alternative's), fitted by bench/lmo_select.py on the even half of the full LM-O dev run s7_full716
+    # (AUC 0.74 on the odd half, bench/RESULTS.md "Edge alignment"); [] = the uncalibrated ratio
+    confidence: list[float] = field(default_factory=lambda: [-3.218, 4.517, 5.610])
     min_fit: float = 0.05  # a chosen pose with less aligned fit than this is flagged failed ("no edge support")
 
 
