@@ -1039,3 +1039,32 @@ def test_run_resume_detects_cut_lines_and_changed_config(lmo_dir, tmp_path):
     assert rc == 0, err
     assert "2 targets, 0 cached, 2 to run" in text and "another config" in text
     assert json.loads((out / "config.json").read_text())["query"]["crop_pad"] == 1.3
+
+
+def test_sigterm_watchdog_ends_a_hanging_clean_exit(tmp_path):
+    """A clean exit after SIGTERM that hangs (a pool or lock caught mid-operation) still ends, with 143 and one line."""
+    code = (
+        "import signal, sys, time\n"
+        "from pixie.app import cli\n"
+        "cli.TERM_GRACE_S = 1.0\n"
+        "signal.signal(signal.SIGTERM, cli._on_sigterm)\n"
+        "print('ready', flush=True)\n"
+        "try:\n"
+        "    time.sleep(60)\n"
+        "except BaseException:\n"
+        "    time.sleep(60)  # the clean-up hangs\n"
+    )
+    env = dict(os.environ, PYTHONPATH=str(SRC), PYTHONUNBUFFERED="1")
+    proc = subprocess.Popen([sys.executable, "-c", code], env=env, stdout=subprocess.PIPE, stderr=subprocess.PIPE,
+                            text=True, start_new_session=True, preexec_fn=_default_signals)
+    try:
+        assert proc.stdout.readline().strip() == "ready"
+        t0 = time.time()
+        proc.terminate()
+        _, err = proc.communicate(timeout=30)
+    finally:
+        if proc.poll() is None:
+            os.killpg(proc.pid, signal.SIGKILL)
+            proc.wait(timeout=10)
+    assert proc.returncode == 143 and err.strip() == "pixie: terminated", err
+    assert time.time() - t0 < 20

@@ -12,6 +12,7 @@ from __future__ import annotations
 import argparse
 import json
 import logging
+import os
 import signal
 import sys
 import threading
@@ -433,7 +434,27 @@ class _Terminated(BaseException):
     """SIGTERM, turned into an exception so that temporary files are removed and workers stopped."""
 
 
+TERM_GRACE_S = 10.0  # after SIGTERM, the clean exit (temporary files removed, workers stopped) gets this long
+_TERM_PRINTED: list = []
+
+
+def _say_terminated() -> None:
+    if not _TERM_PRINTED:
+        _TERM_PRINTED.append(True)
+        print("pixie: terminated", file=sys.stderr, flush=True)
+
+
+def _force_exit() -> None:
+    """The watchdog: a clean exit that hangs (a worker pool or lock caught mid-operation) still ends with 143."""
+    _say_terminated()
+    os._exit(143)
+
+
 def _on_sigterm(signum, frame) -> None:
+    if not _TERM:  # first SIGTERM: arm the watchdog
+        timer = threading.Timer(TERM_GRACE_S, _force_exit)
+        timer.daemon = True
+        timer.start()
     _TERM.append(signum)  # a progress tick raises it where Python would ignore it (fork hooks, e.g. logging's)
     if frame is None or frame.f_code.co_name not in ("_acquireLock", "_releaseLock", "_at_fork_reinit"):
         raise _Terminated()
@@ -458,7 +479,7 @@ def main(argv: list[str] | None = None) -> int:
         return _main(args)
     except _Terminated:
         _close_bars()
-        print("pixie: terminated", file=sys.stderr)
+        _say_terminated()
         return 143
     finally:
         set_threads(threads_before)
