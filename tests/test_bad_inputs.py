@@ -1045,9 +1045,9 @@ def test_sigterm_watchdog_ends_a_hanging_clean_exit(tmp_path):
     """A clean exit after SIGTERM that hangs (a pool or lock caught mid-operation) still ends, with 143 and one line."""
     code = (
         "import signal, sys, time\n"
-        "from pixie.app import cli\n"
+        "from pixie.app import signals as cli\n"
         "cli.TERM_GRACE_S = 1.0\n"
-        "signal.signal(signal.SIGTERM, cli._on_sigterm)\n"
+        "signal.signal(signal.SIGTERM, cli.on_sigterm)\n"
         "print('ready', flush=True)\n"
         "try:\n"
         "    time.sleep(60)\n"

@@ -12,7 +12,6 @@ from __future__ import annotations
 import argparse
 import json
 import logging
-import os
 import signal
 import sys
 import threading
@@ -41,6 +40,7 @@ from pixie.references.set import build_reference_set
 from pixie.references.store import ensure_templates, check_output_path, load_reference_set, save_reference_set
 from pixie.geometry.render import Renderer
 from pixie.app.runner import cached_reference_set, make_matcher, reference_cache_path, run_dataset
+from pixie.app.signals import TERM, Terminated, on_sigterm, say_terminated
 from pixie.viz import contact_sheet, overlay_result, save_png
 from pixie.weights import cache_dir, sha256_file, weights_status
 
@@ -98,7 +98,6 @@ def _add_units_arg(p: argparse.ArgumentParser, what: str = "the mesh file") -> N
 
 
 _OPEN_BARS: list = []  # progress bars still drawing, closed before an interruption is reported
-_TERM: list = []  # SIGTERM received
 
 
 def _close_bars() -> None:
@@ -113,8 +112,8 @@ def _tqdm_progress(total_label: str):
     bar = {"b": None}
 
     def cb(done: int, total: int) -> None:
-        if _TERM:
-            raise _Terminated()
+        if TERM:
+            raise Terminated()
         if bar["b"] is None:
             bar["b"] = tqdm(total=total, unit=total_label, dynamic_ncols=True)
             _OPEN_BARS.append(bar["b"])
@@ -430,36 +429,6 @@ def _show_warning(message, category, filename, lineno, file=None, line=None) -> 
     print(f"pixie: warning: {message}", file=sys.stderr)
 
 
-class _Terminated(BaseException):
-    """SIGTERM, turned into an exception so that temporary files are removed and workers stopped."""
-
-
-TERM_GRACE_S = 10.0  # after SIGTERM, the clean exit (temporary files removed, workers stopped) gets this long
-_TERM_PRINTED: list = []
-
-
-def _say_terminated() -> None:
-    if not _TERM_PRINTED:
-        _TERM_PRINTED.append(True)
-        print("pixie: terminated", file=sys.stderr, flush=True)
-
-
-def _force_exit() -> None:
-    """The watchdog: a clean exit that hangs (a worker pool or lock caught mid-operation) still ends with 143."""
-    _say_terminated()
-    os._exit(143)
-
-
-def _on_sigterm(signum, frame) -> None:
-    if not _TERM:  # first SIGTERM: arm the watchdog
-        timer = threading.Timer(TERM_GRACE_S, _force_exit)
-        timer.daemon = True
-        timer.start()
-    _TERM.append(signum)  # a progress tick raises it where Python would ignore it (fork hooks, e.g. logging's)
-    if frame is None or frame.f_code.co_name not in ("_acquireLock", "_releaseLock", "_at_fork_reinit"):
-        raise _Terminated()
-
-
 def main(argv: list[str] | None = None) -> int:
     argv = sys.argv[1:] if argv is None else list(argv)
     if argv[:1] == ["demo"]:  # the demo parses its own options
@@ -473,13 +442,13 @@ def main(argv: list[str] | None = None) -> int:
         print(f"pixie: error: --threads must be at least 1, got {args.threads}", file=sys.stderr)
         return 2
     in_main = threading.current_thread() is threading.main_thread()
-    previous = signal.signal(signal.SIGTERM, _on_sigterm) if in_main else None
+    previous = signal.signal(signal.SIGTERM, on_sigterm) if in_main else None
     threads_before = set_threads(args.threads or default_threads())  # batch / dataset runs set their own (default 1)
     try:
         return _main(args)
-    except _Terminated:
+    except Terminated:
         _close_bars()
-        _say_terminated()
+        say_terminated()
         return 143
     finally:
         set_threads(threads_before)
