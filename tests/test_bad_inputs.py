@@ -752,6 +752,13 @@ def _spawn(*argv) -> subprocess.Popen:
                             preexec_fn=_default_signals)
 
 
+def _reap(proc: subprocess.Popen) -> None:
+    """Kill a spawned command's process group if it still runs, so a failed test leaves nothing behind."""
+    if proc.poll() is None:
+        os.killpg(proc.pid, signal.SIGKILL)
+        proc.wait(timeout=10)
+
+
 def _default_signals() -> None:
     for sig in (signal.SIGINT, signal.SIGTERM):
         signal.signal(sig, signal.SIG_DFL)
@@ -798,9 +805,7 @@ def test_ctrl_c_during_refs_build(work, tmp_path, workers):
         os.killpg(proc.pid, signal.SIGINT)  # Ctrl-C reaches the whole foreground group
         _, err = proc.communicate(timeout=30)
     finally:
-        if proc.poll() is None:
-            os.killpg(proc.pid, signal.SIGKILL)
-            proc.wait(timeout=10)
+        _reap(proc)
     assert proc.returncode == 130, err
     assert "Traceback" not in err and "KeyboardInterrupt" not in err, err
     assert [ln for ln in err.splitlines() if ln.startswith("pixie:")] == ["pixie: interrupted"], err
@@ -817,9 +822,7 @@ def test_sigterm_during_refs_build(work, tmp_path):
         proc.terminate()
         _, err = proc.communicate(timeout=30)
     finally:
-        if proc.poll() is None:
-            os.killpg(proc.pid, signal.SIGKILL)
-            proc.wait(timeout=10)
+        _reap(proc)
     assert proc.returncode == 143 and "Traceback" not in err, err
     assert [ln for ln in err.splitlines() if ln.startswith("pixie:")] == ["pixie: terminated"], err
     assert not out.exists() and not list(tmp_path.glob(".big*"))
@@ -1063,8 +1066,6 @@ def test_sigterm_watchdog_ends_a_hanging_clean_exit(tmp_path):
         proc.terminate()
         _, err = proc.communicate(timeout=30)
     finally:
-        if proc.poll() is None:
-            os.killpg(proc.pid, signal.SIGKILL)
-            proc.wait(timeout=10)
+        _reap(proc)
     assert proc.returncode == 143 and err.strip() == "pixie: terminated", err
     assert time.time() - t0 < 20

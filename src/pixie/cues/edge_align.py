@@ -212,6 +212,16 @@ def _match_normal(pe: PhotoEdges, xy: np.ndarray, ori: np.ndarray, reach: float,
     return cost, edge, inside
 
 
+def _tukey_rho(r: np.ndarray, tau: float) -> np.ndarray:
+    """Tukey's biweight loss of residuals ``r`` with scale ``tau`` (``tau² / 6`` beyond it)."""
+    return tau ** 2 / 6 * (1 - (1 - np.minimum((r / tau) ** 2, 1.0)) ** 3)
+
+
+def _tukey_weight(r: np.ndarray, tau: float) -> np.ndarray:
+    """Tukey's IRLS weight ``(1 - (r / tau)²)²`` inside the scale, 0 beyond it."""
+    return (1.0 - (r / tau) ** 2) ** 2 * (np.abs(r) < tau)
+
+
 def _project(K: np.ndarray, Xc: np.ndarray) -> np.ndarray:
     z = np.maximum(Xc[:, 2], 1e-6)
     return np.stack([K[0, 0] * Xc[:, 0] / z + K[0, 2], K[1, 1] * Xc[:, 1] / z + K[1, 2]], 1)
@@ -238,13 +248,13 @@ def _lm_step(K: np.ndarray, T: np.ndarray, mp: ModelPoints, pe: PhotoEdges, tau:
     g = pe.edge_dir[edge[use]]
     X = Xc[use]
     r = np.einsum("ij,ij->i", g, p[use] - e)
-    w = (1.0 - (r / tau) ** 2) ** 2 * (np.abs(r) < tau)
+    w = _tukey_weight(r, tau)
     w = w * np.where(mp.kind[use] == CREASE, cfg["crease_weight"], 1.0)
     c = R @ cfg["center"] + t  # rotation about the object's centre
     J = _jacobian(K, X, g, c)
     H = J.T @ (J * w[:, None])
     b = J.T @ (w * r)
-    rho = float(np.sum(tau ** 2 / 6 * (1 - (1 - (r / tau) ** 2) ** 3 * (np.abs(r) < tau))))
+    rho = float(np.sum(_tukey_rho(r, tau)))
     if cfg["w_box"] > 0:
         rb, wb, Jb = _box_terms(K, T, cfg, tau)
         wb = wb * cfg["w_box"] * float(use.sum())
@@ -296,14 +306,14 @@ def _box_terms(K: np.ndarray, T: np.ndarray, cfg: dict, tau: float) -> tuple[np.
     idx = [int(np.argmin(p[:, 0])), int(np.argmax(p[:, 0])), int(np.argmin(p[:, 1])), int(np.argmax(p[:, 1]))]
     a = np.array([[-1.0, 0.0], [1.0, 0.0], [0.0, -1.0], [0.0, 1.0]])
     d = np.array([x0 - p[idx[0], 0], p[idx[1], 0] - x1, y0 - p[idx[2], 1], p[idx[3], 1] - y1])
-    w = np.where(d < 0, 1.0, (1.0 - (d / tau) ** 2) ** 2 * (d < tau))
+    w = np.where(d < 0, 1.0, _tukey_weight(d, tau))
     c = T[:3, :3] @ cfg["center"] + T[:3, 3]
     return d, w, _jacobian(K, Xc[idx], a, c)
 
 
 def _box_cost(K: np.ndarray, T: np.ndarray, cfg: dict, tau: float) -> float:
     d, _, _ = _box_terms(K, T, cfg, tau)
-    rho = np.where(d < 0, 0.5 * d ** 2, tau ** 2 / 6 * (1 - (1 - np.minimum((d / tau) ** 2, 1.0)) ** 3))
+    rho = np.where(d < 0, 0.5 * d ** 2, _tukey_rho(d, tau))
     return float(rho.sum())
 
 
@@ -331,7 +341,7 @@ def _robust_cost(K, T, mp, pe, tau, cfg) -> tuple[float, int]:
     e, g = pe.edge_xy[edge[use]], pe.edge_dir[edge[use]]
     r = np.einsum("ij,ij->i", g, p[use] - e)
     r = np.where(cost[use] < tau, r, tau)  # unmatched count as truncated
-    rho = tau ** 2 / 6 * (1 - (1 - np.minimum((r / tau) ** 2, 1.0)) ** 3)
+    rho = _tukey_rho(r, tau)
     w = np.where(mp.kind[use] == CREASE, cfg["crease_weight"], 1.0)
     # points that left the visible region count as truncated too, so a pose cannot win by hiding its points
     n_out = int((~use).sum())
