@@ -21,6 +21,9 @@ per-query record :class:`Query` (and returns new values), so studies can run, re
     hyps = est.align_stage(q, hyps)            # edge-based 6-DoF alignment, selection on the fit (config.align)
     result = est.result(hyps, timings, q)
 
+:meth:`PoseEstimator.estimate_from_prior` skips the search: it aligns a given starting pose (the previous frame's
+result, a robot's expectation) to the photo's edges and scores it (``pixie track``, ``--init-pose``).
+
 The estimator keeps no per-query state: everything a query needs lives in its :class:`Query`, so one estimator
 can serve queries from several threads.
 """
@@ -35,7 +38,13 @@ from typing import NamedTuple
 
 import numpy as np
 
-from pixie.geometry.camera import check_image_K, intrinsics_warnings, optical_axis_in_object, rotation_angle_deg
+from pixie.geometry.camera import (
+    check_image_K,
+    intrinsics_warnings,
+    optical_axis_in_object,
+    rotation_angle_deg,
+    validate_pose,
+)
 from pixie.config import PixieConfig
 from pixie.errors import ConfigError, ImageError
 from pixie.features import Features
@@ -222,6 +231,63 @@ class PoseEstimator:
             timings["align"] = time.perf_counter() - t
         timings["total"] = time.perf_counter() - t_all
         return self.record_inputs(self.result(hyps, timings, q), q)
+
+    def estimate_from_prior(self, image: np.ndarray, K: np.ndarray, T_init: np.ndarray, bbox=None,
+                            mask: np.ndarray | None = None, margin: float | None = None) -> PoseResult:
+        """Refine a starting pose ``T_init`` (mm, OpenCV camera) instead of searching all views.
+
+        The prior is aligned to the photo's edges (:func:`pixie.cues.edge_align.align`, ``config.align``) inside
+        ``bbox`` / ``mask`` if given, else inside the prior's projected box grown by ``margin`` (default
+        ``align.prior_margin``) of its size on every side (the object may have moved since). The result's
+        ``confidence`` is the aligned fit (share of the visible contour on a same-orientation photo edge, not
+        calibrated); it is ``failed`` ("no edge support") below ``align.min_fit``: a tracker's cue to search again.
+        """
+        t_all = time.perf_counter()
+        image = check_image(image, "query image", min_side=8)
+        K = check_image_K(K, image.shape[:2])
+        T_init = validate_pose(T_init, "init pose")
+        ac = self.cfg.align
+        z = (self.box_points @ T_init[:3, :3].T + T_init[:3, 3])[:, 2]
+        if z.min() <= 0:
+            raise ImageError(f"the init pose puts the object (partly) behind the camera (z = {T_init[2, 3]:.1f} mm)")
+        if mask is not None:
+            mask = check_query_mask(mask, image.shape[:2])
+        if bbox is not None or mask is not None:
+            box_source = "bbox" if bbox is not None else "mask"
+            box = check_bbox(bbox if bbox is not None else bbox_from_mask(mask), image.shape[:2])
+        else:
+            box_source = "prior"
+            x0, y0, x1, y1 = projected_box(T_init, K, self.box_points)
+            m = (ac.prior_margin if margin is None else margin) * max(x1 - x0, y1 - y0)
+            h, w = image.shape[:2]
+            xa, ya, xb, yb = max(x0 - m, 0.0), max(y0 - m, 0.0), min(x1 + m, w), min(y1 + m, h)
+            if xb - xa < 2 or yb - ya < 2:
+                raise ImageError("the init pose projects the object outside the image: nothing to refine "
+                                 f"(its box {np.round([x0, y0, x1, y1], 1).tolist()} in a {w}x{h} image)")
+            box = check_bbox([xa, ya, xb - xa, yb - ya], image.shape[:2])
+        crop = square_crop(image, box, self.cfg.query.crop_pad, self.refs.size, 0.0, mask)
+        q = Query(image, K, box, mask, [crop], [], box_source=box_source)
+        t = time.perf_counter()
+        ren = self._align_renderer or Renderer(self.refs.mesh, smooth_normals=True)
+        pe = photo_edges(image, K, box, mask, object_px=ac.object_px, canny_low=ac.canny_low, canny_high=ac.canny_high)
+        q.photo_edges = pe
+        res = align(ren, pe, T_init, schedule=tuple(ac.schedule), iters=ac.iters, crease_weight=ac.crease_weight,
+                    rot_prior=ac.rot_prior, fit_px=ac.fit_px, search=ac.search, min_contrast=ac.min_contrast,
+                    w_box=ac.w_box if box_source != "prior" else 0.0, hull=self.box_points)
+        T = res.T_cam_from_obj
+        hyp = Hypothesis(T_cam_from_obj=T, score=res.fit.share, n_inliers=0, n_matches=0, view=-1, roll=-1,
+                         rot_to_ref_deg=0.0, box_iou=box_iou(projected_box(T, K, self.box_points), box), source="prior")
+        hyp.fit = res.fit.share
+        hyp.terms = {"fit": res.fit.share, "fit_silhouette": res.fit.silhouette_share, "fit_visible": res.fit.visible,
+                     "fit_dist": res.fit.mean_dist, "align_iterations": float(res.iterations)}
+        if box_source == "prior":  # the search region was the prior's grown box: record the refined pose's own box
+            pb = projected_box(T, K, self.box_points)
+            h, w = image.shape[:2]
+            pb = np.array([max(pb[0], 0.0), max(pb[1], 0.0), min(pb[2], w), min(pb[3], h)])
+            if pb[2] - pb[0] >= 2 and pb[3] - pb[1] >= 2:
+                q.box = pb
+        timings = {"align": time.perf_counter() - t, "total": time.perf_counter() - t_all}
+        return self.record_inputs(self.result([hyp], timings, q), q)
 
     # ------------------------------------------------------------------------------------------ stages
     def prepare(self, image: np.ndarray, K: np.ndarray, bbox=None, mask: np.ndarray | None = None) -> Query:
@@ -588,17 +654,19 @@ class PoseEstimator:
         set_confidences(distinct)
         confidence = distinct[0].confidence
         ac = self.cfg.align
-        aligned = ac.enabled and "fit" in best.terms
-        if aligned and len(ac.confidence) == 3:  # calibrated on LM-O dev (bench/lmo_select.py)
+        aligned = ac.enabled and "fit" in best.terms and best.source != "prior"
+        if best.source == "prior":  # a refined prior: its aligned fit is the confidence (not calibrated)
+            confidence = float(best.fit)
+        elif aligned and len(ac.confidence) == 3:  # calibrated on LM-O dev (bench/lmo_select.py)
             margin = best.score - (distinct[1].score if len(distinct) > 1 else 0.0)
             a, b, c = ac.confidence
             confidence = float(1.0 / (1.0 + np.exp(-(a + b * best.terms["fit"] + c * margin))))
             best.terms["margin"] = margin
         distinct += [h for h in hyps if h.matcher_best and all(h is not d for d in distinct)][:1]  # for comparisons
-        shape_pose = best.source in ("edges", "region") or np.isfinite(best.edge)
+        shape_pose = best.source in ("edges", "region", "prior") or np.isfinite(best.edge)
         failed = (best.n_inliers < max(self.cfg.pose.min_inliers, 1) and not shape_pose) or best.score <= 0
         msg = "ok" if not failed else "low support"
-        if aligned and best.terms["fit"] < ac.min_fit:
+        if "fit" in best.terms and (aligned or best.source == "prior") and best.terms["fit"] < ac.min_fit:
             failed, msg = True, (f"no edge support: {100 * best.terms['fit']:.0f} % of the pose's visible contour lies on "
                                  "a photo edge (align.min_fit)")
         if q is not None:

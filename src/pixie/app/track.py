@@ -1,0 +1,98 @@
+"""Pose tracking over an ordered sequence of photos: each result is the next frame's prior (``pixie track``).
+
+Per frame, the previous pose is refined by :meth:`pixie.pipeline.estimator.PoseEstimator.estimate_from_prior`
+(edge alignment only: no matching, no view search). When its aligned fit falls below ``align.reset_fit`` (or the
+refinement fails) the pose is taken as lost and the frame gets the full search
+(:meth:`~pixie.pipeline.estimator.PoseEstimator.estimate`) in the frame's box if one is given, else in the last
+good pose's projected box. The first frame starts from ``init_pose`` if given, else from the full search.
+
+>>> steps = track(est, frames, init_pose=T0)        # frames: iterable of Frame
+>>> [s.mode for s in steps]                         # 'prior' or 'search' per frame
+"""
+
+from __future__ import annotations
+
+import time
+from dataclasses import dataclass
+from typing import Iterable, Iterator
+
+import numpy as np
+
+from pixie.errors import PixieError
+from pixie.pipeline.estimator import PoseEstimator
+from pixie.pose.results import PoseResult
+from pixie.pose.solve import projected_box
+
+__all__ = ["Frame", "TrackStep", "track"]
+
+
+@dataclass(kw_only=True)
+class Frame:
+    """One photo of the sequence: RGB uint8 image, 3x3 K, optional box (x, y, w, h) and a name."""
+
+    image: np.ndarray
+    K: np.ndarray
+    bbox: tuple[float, float, float, float] | None = None
+    name: str = ""
+
+
+@dataclass(kw_only=True)
+class TrackStep:
+    """What tracking did on one frame: ``mode`` 'prior' (refined the previous pose) or 'search' (full search,
+    ``reason`` says why), the result and the seconds it took."""
+
+    name: str
+    mode: str
+    reason: str
+    result: PoseResult
+    seconds: float
+
+
+def _box_of(est: PoseEstimator, T: np.ndarray, K: np.ndarray, shape: tuple[int, int]) -> tuple[float, ...] | None:
+    """The projected box (x, y, w, h) of pose ``T``, clipped to the image; None when it leaves the image."""
+    x0, y0, x1, y1 = projected_box(T, K, est.box_points)
+    h, w = shape
+    x0, y0, x1, y1 = max(x0, 0.0), max(y0, 0.0), min(x1, w), min(y1, h)
+    return None if x1 - x0 < 2 or y1 - y0 < 2 else (x0, y0, x1 - x0, y1 - y0)
+
+
+def track(est: PoseEstimator, frames: Iterable[Frame], init_pose: np.ndarray | None = None,
+          reset_fit: float | None = None) -> Iterator[TrackStep]:
+    """Track the object over ``frames`` (in order); yields one :class:`TrackStep` per frame.
+
+    Parameters
+    ----------
+    est : the estimator (its ``config.align`` sets the refinement)
+    frames : the photos, in order
+    init_pose : (4, 4) prior of the first frame (mm, OpenCV camera); None: the first frame is searched (it then
+        needs a box)
+    reset_fit : aligned fit below which a refined prior counts as lost (default ``align.reset_fit``)
+    """
+    reset = est.cfg.align.reset_fit if reset_fit is None else float(reset_fit)
+    prior = None if init_pose is None else np.asarray(init_pose, np.float64)
+    last_good = prior
+    for fr in frames:
+        t0 = time.perf_counter()
+        res, mode, reason = None, "prior", ""
+        if prior is not None:
+            try:
+                res = est.estimate_from_prior(fr.image, fr.K, prior, bbox=fr.bbox)
+            except PixieError as exc:  # the prior left the image, or sits behind the camera
+                res, reason = None, f"prior unusable: {exc}"
+            if res is not None and (res.failed or res.confidence < reset):
+                reason = f"lost: aligned fit {res.confidence:.2f} < {reset:.2f}" if not res.failed else f"lost: {res.message}"
+                res = None
+        if res is None:
+            mode = "search"
+            reason = reason or "no prior"
+            box = fr.bbox
+            if box is None and last_good is not None:
+                box = _box_of(est, last_good, fr.K, fr.image.shape[:2])
+            if box is None:
+                raise PixieError(f"frame {fr.name or '?'}: no prior to refine and no box to search in "
+                                 "(give the first frame's --bbox or an --init-pose)")
+            res = est.estimate(fr.image, fr.K, bbox=box)
+        if not res.failed and res.T_cam_from_obj is not None:
+            last_good = res.T_cam_from_obj
+        prior = last_good
+        yield TrackStep(name=fr.name, mode=mode, reason=reason, result=res, seconds=time.perf_counter() - t0)
