@@ -346,6 +346,7 @@ class AlignConfig(_Section):
     min_fit: float = 0.05  # a chosen pose with less aligned fit than this is flagged failed ("no edge support")
     prior_margin: float = 0.25  # estimate_from_prior without a box: the prior's box grown by this share of its size
     reset_fit: float = 0.3  # pixie track: a refined prior with less aligned fit is lost -> full search (bench/track.py)
+    reset_ratio: float = 0.75  # ... or with less than this share of the recent frames' median fit (bench/track.py)
 
 
 _SECTION_NAMES[AlignConfig] = "align"
@@ -354,7 +355,8 @@ RANGES.update({"align.min_contrast": (0, 1, True), "align.w_box": (0, None, True
                "align.iters": (1, 100, True), "align.crease_weight": (0, 10, True), "align.rot_prior": (0, None, True),
                "align.canny_low": (0, None, True), "align.canny_high": (0, None, True), "align.fit_px": (0, 100, False),
                "align.w_fit": (0, None, True), "align.min_fit": (0, 1, True),
-               "align.prior_margin": (0, 4, True), "align.reset_fit": (0, 1, True)})
+               "align.prior_margin": (0, 4, True), "align.reset_fit": (0, 1, True),
+               "align.reset_ratio": (0, 1, True)})
 
 
 @dataclass

@@ -4,7 +4,9 @@ Per frame, the previous pose is refined by :meth:`pixie.pipeline.estimator.PoseE
 (edge alignment only: no matching, no view search). When its aligned fit falls below ``align.reset_fit`` (or the
 refinement fails) the pose is taken as lost and the frame gets the full search
 (:meth:`~pixie.pipeline.estimator.PoseEstimator.estimate`) in the frame's box if one is given, else in the last
-good pose's projected box. The first frame starts from ``init_pose`` if given, else from the full search.
+good pose's projected box; ``align.reset_ratio`` of the recent frames' median fit is the threshold when higher
+(a wrong pose of a part keeps some fit: on the bench a 90° wrong prior aligns to 0.31-0.39, a tracked one to
+0.57-0.64). The first frame starts from ``init_pose`` if given, else from the full search.
 
 >>> steps = track(est, frames, init_pose=T0)        # frames: iterable of Frame
 >>> [s.mode for s in steps]                         # 'prior' or 'search' per frame
@@ -23,7 +25,7 @@ from pixie.pipeline.estimator import PoseEstimator
 from pixie.pose.results import PoseResult
 from pixie.pose.solve import projected_box
 
-__all__ = ["Frame", "TrackStep", "track"]
+__all__ = ["Frame", "TrackStep", "Tracker", "track"]
 
 
 @dataclass(kw_only=True)
@@ -56,6 +58,58 @@ def _box_of(est: PoseEstimator, T: np.ndarray, K: np.ndarray, shape: tuple[int, 
     return None if x1 - x0 < 2 or y1 - y0 < 2 else (x0, y0, x1 - x0, y1 - y0)
 
 
+class Tracker:
+    """The tracking state (the prior, the last good pose) and :meth:`step` for one frame.
+
+    ``prior`` may be set between frames (a robot's expectation, a test's forced loss).
+    """
+
+    def __init__(self, est: PoseEstimator, init_pose: np.ndarray | None = None, reset_fit: float | None = None):
+        self.est = est
+        self.reset = est.cfg.align.reset_fit if reset_fit is None else float(reset_fit)
+        self.prior = None if init_pose is None else np.asarray(init_pose, np.float64)
+        self.last_good = self.prior
+        self.ratio = est.cfg.align.reset_ratio
+        self.fits: list[float] = []  # aligned fits of the frames tracked well so far (the recent ones count)
+
+    def threshold(self) -> float:
+        """The fit below which a refined prior counts as lost: ``align.reset_fit``, or ``align.reset_ratio`` of the
+        median fit of the last 10 well-tracked frames when that is higher (a part's usual fit depends on its shape)."""
+        recent = self.fits[-10:]
+        return max(self.reset, self.ratio * float(np.median(recent))) if recent else self.reset
+
+    def step(self, fr: Frame) -> TrackStep:
+        """Refine the prior in ``fr`` (or search when it is lost or absent); the result becomes the next prior."""
+        est, t0 = self.est, time.perf_counter()
+        res, mode, reason = None, "prior", ""
+        if self.prior is not None:
+            try:
+                res = est.estimate_from_prior(fr.image, fr.K, self.prior, bbox=fr.bbox)
+            except PixieError as exc:  # the prior left the image, or sits behind the camera
+                res, reason = None, f"prior unusable: {exc}"
+            th = self.threshold()
+            if res is not None and (res.failed or res.confidence < th):
+                reason = (f"lost: {res.message}" if res.failed
+                          else f"lost: aligned fit {res.confidence:.2f} < {th:.2f}")
+                res = None
+            elif res is not None:
+                self.fits.append(float(res.confidence))
+        if res is None:
+            mode, reason = "search", reason or "no prior"
+            box = fr.bbox
+            for T in (self.last_good, self.prior):  # the last good pose: the object moved little since
+                if box is None and T is not None:
+                    box = _box_of(est, T, fr.K, fr.image.shape[:2])
+            if box is None:
+                raise PixieError(f"frame {fr.name or '?'}: no prior to refine and no box to search in "
+                                 "(give the first frame's --bbox or an --init-pose)")
+            res = est.estimate(fr.image, fr.K, bbox=box)
+        if not res.failed and res.T_cam_from_obj is not None:
+            self.last_good = res.T_cam_from_obj
+        self.prior = self.last_good
+        return TrackStep(name=fr.name, mode=mode, reason=reason, result=res, seconds=time.perf_counter() - t0)
+
+
 def track(est: PoseEstimator, frames: Iterable[Frame], init_pose: np.ndarray | None = None,
           reset_fit: float | None = None) -> Iterator[TrackStep]:
     """Track the object over ``frames`` (in order); yields one :class:`TrackStep` per frame.
@@ -68,31 +122,6 @@ def track(est: PoseEstimator, frames: Iterable[Frame], init_pose: np.ndarray | N
         needs a box)
     reset_fit : aligned fit below which a refined prior counts as lost (default ``align.reset_fit``)
     """
-    reset = est.cfg.align.reset_fit if reset_fit is None else float(reset_fit)
-    prior = None if init_pose is None else np.asarray(init_pose, np.float64)
-    last_good = prior
+    tr = Tracker(est, init_pose, reset_fit)
     for fr in frames:
-        t0 = time.perf_counter()
-        res, mode, reason = None, "prior", ""
-        if prior is not None:
-            try:
-                res = est.estimate_from_prior(fr.image, fr.K, prior, bbox=fr.bbox)
-            except PixieError as exc:  # the prior left the image, or sits behind the camera
-                res, reason = None, f"prior unusable: {exc}"
-            if res is not None and (res.failed or res.confidence < reset):
-                reason = f"lost: aligned fit {res.confidence:.2f} < {reset:.2f}" if not res.failed else f"lost: {res.message}"
-                res = None
-        if res is None:
-            mode = "search"
-            reason = reason or "no prior"
-            box = fr.bbox
-            if box is None and last_good is not None:
-                box = _box_of(est, last_good, fr.K, fr.image.shape[:2])
-            if box is None:
-                raise PixieError(f"frame {fr.name or '?'}: no prior to refine and no box to search in "
-                                 "(give the first frame's --bbox or an --init-pose)")
-            res = est.estimate(fr.image, fr.K, bbox=box)
-        if not res.failed and res.T_cam_from_obj is not None:
-            last_good = res.T_cam_from_obj
-        prior = last_good
-        yield TrackStep(name=fr.name, mode=mode, reason=reason, result=res, seconds=time.perf_counter() - t0)
+        yield tr.step(fr)

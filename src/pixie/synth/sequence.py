@@ -57,12 +57,16 @@ def smooth_sequence(mesh: Mesh, K: np.ndarray, height: int, width: int, n_frames
     lights = LightRig.random(rng)
     bg = random_background(height, width, rng, "clutter" if clutter else "gradient")
     others, other_poses, other_mats = [], [], []
-    for _ in range(distractors):
+    f_px = K[0, 0] * mesh.diameter / T0[2, 3]  # the object's size in the image, px
+    for j in range(distractors):
         ext = rng.uniform(0.3, 0.7, 3) * mesh.diameter
         b = trimesh.creation.box(extents=ext)
         others.append(Renderer(from_arrays(np.asarray(b.vertices), np.asarray(b.faces), name="distractor")))
-        z = T0[2, 3] * rng.uniform(0.6, 0.9)
-        uv = rng.uniform([0.25 * width, 0.25 * height], [0.75 * width, 0.75 * height])
+        # the first one in front, beside the path (covers a part of the object at times), the others behind it
+        z = T0[2, 3] * (0.75 if j == 0 else rng.uniform(1.2, 1.5))
+        side = rng.choice([-1.0, 1.0])
+        off = np.array([-np.sin(phi), np.cos(phi)]) * side * 0.6 * f_px if j == 0 else rng.normal(0, 1.0, 2) * f_px
+        uv = np.array([K[0, 2], K[1, 2]]) + off
         other_poses.append(make_T(cv2.Rodrigues(rng.normal(size=3))[0],
                                   np.array([(uv[0] - K[0, 2]) / K[0, 0] * z, (uv[1] - K[1, 2]) / K[1, 1] * z, z])))
         other_mats.append(Material.random(rng))
