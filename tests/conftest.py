@@ -200,6 +200,20 @@ def build_refs():
     return _build
 
 
+@pytest.fixture(scope="session")
+def query_e2e(proc_mesh, matcher_name, build_refs):
+    """(refs, config, matcher) of the procedural part on the demo's and the README's LM-O path: the end-to-end
+    reference set with roll-0 features only, the query crop rotated (``match.in_plane=query``); built once."""
+    from pixie.app.runner import make_matcher
+    from pixie.synth.e2e import e2e_config
+
+    cfg = e2e_config(matcher_name)
+    cfg.refs.feature_rolls = "first"
+    cfg.match.in_plane = "query"
+    matcher = make_matcher(cfg)
+    return build_refs(proc_mesh, cfg.refs, matcher=matcher), cfg, matcher
+
+
 # ------------------------------------------------------------------------------ a tiny BOP dataset
 
 SYN_K = np.array([[500.0, 0.0, 160.0], [0.0, 500.0, 120.0], [0.0, 0.0, 1.0]])

@@ -6,7 +6,7 @@ import numpy as np
 import pytest
 from conftest import check_result
 
-from pixie.synth.e2e import E2E_POSES, K_Q, e2e_config, generic_pose, pose_errors, render_photo
+from pixie.synth.e2e import E2E_POSES, K_Q, generic_pose, pose_errors, render_photo
 
 from pixie.errors import ConfigError
 from pixie.pipeline.estimator import PoseEstimator
@@ -16,19 +16,11 @@ from pixie.app.runner import make_matcher
 pytestmark = pytest.mark.usefixtures("one_torch_thread")
 
 
-def query_config(matcher_name: str):
-    """The demo's and the README's LM-O path: roll-0 reference features only, the query crop is rotated."""
-    cfg = e2e_config(matcher_name)
-    cfg.refs.feature_rolls = "first"
-    cfg.match.in_plane = "query"
-    return cfg
-
-
 @pytest.fixture(scope="module")
-def query_est(proc_mesh, matcher_name, build_refs):
-    cfg = query_config(matcher_name)
-    matcher = make_matcher(cfg)
-    return PoseEstimator(build_refs(proc_mesh, cfg.refs, matcher=matcher), cfg, matcher=matcher)
+def query_est(query_e2e):
+    """The demo's and the README's LM-O path (conftest ``query_e2e``): roll-0 reference features, rotated query."""
+    refs, cfg, matcher = query_e2e
+    return PoseEstimator(refs, cfg, matcher=matcher)
 
 
 # The first four generic poses of test_pipeline (rolled -10 to 30 degrees), fixed before looking at results.

@@ -1,5 +1,6 @@
-"""Command line: ``pixie refs build|show``, ``pixie estimate`` (one photo or ``--batch``), ``pixie run``,
-``pixie eval``, ``pixie weights``, ``pixie demo``, ``pixie --version``.
+"""Command line: ``pixie refs build|show``, ``pixie estimate`` (one photo or ``--batch``), ``pixie track``, ``pixie run``,
+``pixie eval``, ``pixie weights``, ``pixie demo``, ``pixie --version``. Longer than 500 lines on purpose: every
+subcommand's arguments and thin handler live in this one module, so the command line reads in one place.
 
 Config: ``--preset`` (default ``default``), then ``--config FILE.yaml``, then ``--set section.key=value``; and
 ``--device``. Inputs and output paths are checked before any work; outputs go to exactly the name given, atomically
@@ -41,6 +42,7 @@ from pixie.references.store import ensure_templates, check_output_path, load_ref
 from pixie.geometry.render import Renderer
 from pixie.app.runner import cached_reference_set, make_matcher, reference_cache_path, run_dataset
 from pixie.app.signals import TERM, Terminated, on_sigterm, say_terminated
+from pixie.app.track import Frame, Tracker, frame_paths, read_pose_file
 from pixie.viz import contact_sheet, overlay_result, save_png
 from pixie.weights import cache_dir, sha256_file, weights_status
 
@@ -218,8 +220,9 @@ def cmd_estimate(args: argparse.Namespace) -> int:
     cfg = _config(args)
     if args.K is None:
         raise UsageError("--K fx,fy,cx,cy is needed (the camera intrinsics in pixels)")
-    if args.bbox is None and args.mask is None:
+    if args.bbox is None and args.mask is None and not args.init_pose:
         raise UsageError(no_box_message("--bbox x,y,w,h", "--mask MASK.png", "--bbox 0,0,WIDTH,HEIGHT"))
+    T_init = read_pose_file(args.init_pose) if args.init_pose else None
     out_json = output_file(args.output, force=args.force, what="result") if args.output else None
     out_png = output_file(args.overlay, force=args.force, what="overlay") if args.overlay else None
     not_an_input([out_json, out_png], [args.refs, args.mesh, args.image, args.mask])
@@ -231,16 +234,24 @@ def cmd_estimate(args: argparse.Namespace) -> int:
     mask = None
     if args.mask:
         mask = check_query_mask(load_image(args.mask)[..., 0] > 127, image.shape[:2])
-    box = check_bbox(bbox if bbox is not None else bbox_from_mask(mask), image.shape[:2])
-    if mask is not None:
-        check_query_mask(mask, image.shape[:2], box)
+    if bbox is not None or mask is not None:
+        box = check_bbox(bbox if bbox is not None else bbox_from_mask(mask), image.shape[:2])
+        if mask is not None:
+            check_query_mask(mask, image.shape[:2], box)
     _matcher_for(refs, cfg, args)
     est = PoseEstimator(refs, cfg)
-    res = est.estimate(image, K, bbox=bbox, mask=mask)
+    if T_init is not None:  # refine the prior: no view search
+        res = est.estimate_from_prior(image, K, T_init, bbox=bbox, mask=mask)
+    else:
+        res = est.estimate(image, K, bbox=bbox, mask=mask)
     T = res.T_cam_from_obj
     status = "FAILED (" + res.message + ")" if res.failed else "ok"
-    print(f"pose {status}: score {res.score:.1f}, {res.n_inliers} inliers, view {res.view} roll {res.roll}, "
-          f"confidence {res.confidence:.2f} (margin over the next hypothesis, not calibrated)")
+    if T_init is not None:
+        print(f"pose {status}: refined from --init-pose, aligned edge fit {res.confidence:.2f} (share of the visible "
+              "contour on a photo edge)")
+    else:
+        print(f"pose {status}: score {res.score:.1f}, {res.n_inliers} inliers, view {res.view} roll {res.roll}, "
+              f"confidence {res.confidence:.2f} ({'calibrated on LM-O' if res.confidence_calibrated else 'not calibrated'})")
     if T is not None:
         np.set_printoptions(precision=4, suppress=True)
         print("T_cam_from_obj (mm) =\n" + str(T))
@@ -316,6 +327,39 @@ def cmd_weights(args: argparse.Namespace) -> int:
     return 0
 
 
+# ------------------------------------------------------------------------------------------- track
+def cmd_track(args: argparse.Namespace) -> int:
+    cfg = _config(args)
+    if not args.init_pose and args.bbox is None:
+        raise UsageError("give the first frame's --init-pose POSE.json or its --bbox x,y,w,h")
+    paths = frame_paths(args.frames)
+    out = output_file(args.output, force=args.force, what="track result")
+    not_an_input([out], [args.refs, args.mesh, *paths])
+    T_init = read_pose_file(args.init_pose) if args.init_pose else None
+    K = parse_K(args.K)
+    first_box = None if args.bbox is None else parse_numbers(args.bbox, "--bbox", 4, error=UsageError)
+    refs, _ = _refs_for_estimate(args, cfg, cache_dir().parent / "refs")
+    _matcher_for(refs, cfg, args)
+    tracker = Tracker(PoseEstimator(refs, cfg), T_init)
+    lines, n_search, t0 = [], 0, time.perf_counter()
+    for i, p in enumerate(paths):
+        image = load_image(p)
+        fr = Frame(image=image, K=check_image_K(K, image.shape[:2]), bbox=first_box if i == 0 and T_init is None else None,
+                   name=p.name)
+        st = tracker.step(fr)
+        r = st.result
+        n_search += st.mode == "search"
+        lines.append(json.dumps({"frame": p.name, "mode": st.mode, "reason": st.reason, "failed": r.failed,
+                                 "message": r.message, "confidence": r.confidence, "seconds": st.seconds,
+                                 "T_cam_from_obj": None if r.T_cam_from_obj is None else r.T_cam_from_obj.tolist()}))
+        print(f"{p.name}: {st.mode}{' (' + st.reason + ')' if st.reason and st.mode == 'search' else ''}, "
+              f"{'FAILED ' + r.message if r.failed else 'ok'}, fit/confidence {r.confidence:.2f}, {st.seconds:.2f} s")
+    write_atomic(out, "\n".join(lines) + "\n")
+    dt = time.perf_counter() - t0
+    print(f"{len(paths)} frames in {dt:.1f} s ({dt / len(paths):.2f} s/frame), {n_search} searched -> {out}")
+    return 0
+
+
 # ------------------------------------------------------------------------------------------- run
 def cmd_run(args: argparse.Namespace) -> int:
     cfg = _config(args)
@@ -386,6 +430,8 @@ def build_parser() -> argparse.ArgumentParser:
     e.add_argument("--bbox", help="object box x,y,w,h in pixels, w and h counting pixels (BOP files store one less: "
                    "add 1); or give --mask. One of them is required")
     e.add_argument("--mask", help="object mask image (white = object)")
+    e.add_argument("--init-pose", help="a starting pose (JSON: a pixie result, R and t in mm, or BOP cam_R_m2c / "
+                   "cam_t_m2c) refined by edge alignment instead of searching all views; --bbox optional")
     e.add_argument("--masks", help="--batch FOLDER: folder of masks named like the images")
     e.add_argument("-o", "--output", help="result JSON (one photo) or output folder (--batch)")
     e.add_argument("--overlay", help="PNG with the model drawn at the estimate")
@@ -406,6 +452,21 @@ def build_parser() -> argparse.ArgumentParser:
     _add_parallel_args(r)
     _add_config_args(r)
     r.set_defaults(func=cmd_run)
+
+    tk = sub.add_parser("track", help="track the object over an ordered folder of photos: each pose is the next "
+                        "frame's prior (full search when the edge fit says it is lost)")
+    tk.add_argument("frames", help="folder of photos, in name order")
+    tk.add_argument("--refs", help="reference set (.npz) from `pixie refs build`")
+    tk.add_argument("--mesh", help="or the CAD model (references built once and cached)")
+    _add_units_arg(tk, "--mesh")
+    tk.add_argument("--K", required=True, help="intrinsics fx,fy,cx,cy (OpenCV, pixels), the same for every frame")
+    tk.add_argument("--init-pose", help="the first frame's pose (JSON, as for estimate --init-pose)")
+    tk.add_argument("--bbox", help="the first frame's box x,y,w,h (searched when no --init-pose is given)")
+    tk.add_argument("-o", "--output", required=True, help="output JSONL, one line per frame")
+    tk.add_argument("--force", action="store_true", help="replace an existing output file")
+    _add_threads_arg(tk)
+    _add_config_args(tk)
+    tk.set_defaults(func=cmd_track)
 
     d = sub.add_parser("demo", help="build references for one object and estimate its pose in a photo "
                        "(a generated part when no LM-O data is around); `pixie demo -h` for its options",

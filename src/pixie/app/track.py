@@ -14,8 +14,10 @@ good pose's projected box; ``align.reset_ratio`` of the recent frames' median fi
 
 from __future__ import annotations
 
+import json
 import time
 from dataclasses import dataclass
+from pathlib import Path
 from typing import Iterable, Iterator
 
 import numpy as np
@@ -25,7 +27,7 @@ from pixie.pipeline.estimator import PoseEstimator
 from pixie.pose.results import PoseResult
 from pixie.pose.solve import projected_box
 
-__all__ = ["Frame", "TrackStep", "Tracker", "track"]
+__all__ = ["Frame", "TrackStep", "Tracker", "track", "read_pose_file", "frame_paths"]
 
 
 @dataclass(kw_only=True)
@@ -125,3 +127,48 @@ def track(est: PoseEstimator, frames: Iterable[Frame], init_pose: np.ndarray | N
     tr = Tracker(est, init_pose, reset_fit)
     for fr in frames:
         yield tr.step(fr)
+
+
+def read_pose_file(path: str | Path) -> np.ndarray:
+    """A pose (4x4, mm, OpenCV camera) from a JSON file: a pixie result (``T_cam_from_obj``), ``{"R": ..., "t": ...}``
+    (3x3 or 9 numbers; t in mm), BOP's ``cam_R_m2c`` / ``cam_t_m2c``, or a bare 4x4 list.
+
+    Raises
+    ------
+    PixieError
+        The file is missing or unreadable, or holds no valid rigid pose (the message names what is wrong).
+    """
+    from pixie.geometry.camera import make_T, validate_pose
+
+    p = Path(path)
+    if not p.is_file():
+        raise PixieError(f"pose file not found: {p}")
+    try:
+        d = json.loads(p.read_text())
+    except (OSError, UnicodeDecodeError, json.JSONDecodeError) as exc:
+        raise PixieError(f"pose file {p} is not readable JSON: {exc}") from None
+    try:
+        if isinstance(d, dict) and d.get("T_cam_from_obj") is not None:
+            T = np.asarray(d["T_cam_from_obj"], np.float64)
+        elif isinstance(d, dict) and ("R" in d or "cam_R_m2c" in d):
+            R = np.asarray(d.get("R", d.get("cam_R_m2c")), np.float64).reshape(3, 3)
+            t = np.asarray(d.get("t", d.get("cam_t_m2c")), np.float64).reshape(3)
+            T = make_T(R, t)
+        elif isinstance(d, list):
+            T = np.asarray(d, np.float64)
+        else:
+            raise ValueError("expected T_cam_from_obj, R and t, cam_R_m2c and cam_t_m2c, or a 4x4 list")
+        return validate_pose(T, f"pose in {p}")
+    except (ValueError, TypeError) as exc:
+        raise PixieError(f"pose file {p}: {exc}") from None
+
+
+def frame_paths(folder: str | Path) -> list[Path]:
+    """The photos of a sequence folder in name order (png, jpg, jpeg, bmp, tif)."""
+    f = Path(folder)
+    if not f.is_dir():
+        raise PixieError(f"frames folder not found: {f}")
+    out = sorted(p for p in f.iterdir() if p.suffix.lower() in (".png", ".jpg", ".jpeg", ".bmp", ".tif", ".tiff"))
+    if not out:
+        raise PixieError(f"no photos (png, jpg, bmp, tif) in {f}")
+    return out
