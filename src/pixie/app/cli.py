@@ -22,7 +22,7 @@ from pathlib import Path
 import numpy as np
 
 from pixie._version import __version__
-from pixie.app.batch import folder_items, read_manifest, run_batch
+from pixie.app.batch import BATCH_OUTPUTS, folder_items, read_manifest, run_batch
 from pixie.geometry.camera import check_image_K, parse_K, parse_numbers
 from pixie.config import DEFAULT_PRESET, PixieConfig, parse_override, preset_about, preset_names
 from pixie.app.demo import main as demo_main
@@ -31,7 +31,6 @@ from pixie.errors import DatasetError, PixieError, ReferenceSetError, UsageError
 from pixie.pipeline.estimator import PoseEstimator
 from pixie.eval import BopDataset, add_eval_arguments, main_eval, run_eval
 from pixie.matching import available_matchers, backend_weights
-from pixie.geometry.mesh import load_mesh, units_note
 from pixie.threads import default_threads, set_threads
 from pixie.paths import not_an_input, output_dir, output_file, write_atomic
 from pixie.pose.results import no_box_message
@@ -39,8 +38,10 @@ from pixie.pipeline.query import bbox_from_mask, check_bbox, check_query_mask, l
 from pixie.references.set import build_reference_set
 from pixie.references.store import ensure_templates, check_output_path, load_reference_set, save_reference_set
 from pixie.geometry.render import Renderer
-from pixie.app.runner import cached_reference_set, make_matcher, reference_cache_path, run_dataset
-from pixie.app.signals import TERM, Terminated, on_sigterm, say_terminated
+from pixie.app.runner import RUN_OUTPUTS, cached_reference_set, make_matcher, reference_cache_path, run_dataset
+from pixie.app.console import close_bars, load_mesh_announced as _load_mesh, say_warning, show_warning, tqdm_progress
+from pixie.app.notes import annotate, collect_warnings
+from pixie.app.signals import Terminated, on_sigterm, say_terminated
 from pixie.viz import contact_sheet, overlay_result, save_png
 from pixie.weights import cache_dir, sha256_file, weights_status
 
@@ -80,49 +81,9 @@ def _add_parallel_args(p: argparse.ArgumentParser) -> None:
     p.add_argument("--workers", type=int, help="Ray workers (default: cluster CPUs // --threads)")
 
 
-def _load_mesh(path: str, units: str):
-    """load_mesh, announcing the units in one line and any size warning as one clean line. With ``--units auto``
-    (the user named no units) a size implausible even after auto-detection is an error, not a warning."""
-    with warnings.catch_warnings(record=True) as caught:
-        warnings.simplefilter("always")
-        mesh = load_mesh(path, units=units, implausible="error" if units == "auto" else "warn")
-    print(units_note(mesh))
-    for w in caught:
-        print(f"pixie: warning: {w.message}", file=sys.stderr)
-    return mesh
-
-
 def _add_units_arg(p: argparse.ArgumentParser, what: str = "the mesh file") -> None:
     p.add_argument("--units", default="auto", choices=["auto", "mm", "cm", "m"],
                    help=f"units of {what} (default auto: metres if it is under 2 units across, else mm; announced)")
-
-
-_OPEN_BARS: list = []  # progress bars still drawing, closed before an interruption is reported
-
-
-def _close_bars() -> None:
-    """Close the open progress bars, so that a message printed next stands on its own line."""
-    while _OPEN_BARS:
-        _OPEN_BARS.pop().close()
-
-
-def _tqdm_progress(total_label: str):
-    from tqdm import tqdm
-
-    bar = {"b": None}
-
-    def cb(done: int, total: int) -> None:
-        if TERM:
-            raise Terminated()
-        if bar["b"] is None:
-            bar["b"] = tqdm(total=total, unit=total_label, dynamic_ncols=True)
-            _OPEN_BARS.append(bar["b"])
-        bar["b"].update(done - bar["b"].n)
-        if done >= total:
-            bar["b"].close()
-            _OPEN_BARS.remove(bar["b"])
-
-    return cb
 
 
 # ------------------------------------------------------------------------------------------- refs
@@ -144,21 +105,23 @@ def cmd_refs_build(args: argparse.Namespace) -> int:
     if args.matcher and args.matcher != "none":
         cfg.match.matcher = args.matcher
     out = check_output_path(args.output, force=args.force)  # fail before minutes of rendering, not after
+    not_an_input([out], [args.mesh, args.config])
     mesh = _load_mesh(args.mesh, args.units)
     matcher = None if args.matcher == "none" else make_matcher(cfg)
     n_views = cfg.refs.n_fibonacci + (6 if cfg.refs.canonical else 0)
     print(f"{mesh.name}: {len(mesh.vertices)} vertices; "
           f"{n_views} views x {cfg.refs.rotations} rolls at {cfg.refs.size} px, encodings {cfg.refs.encodings}, "
           f"features: {matcher.name if matcher else 'none'}")
-    refs = build_reference_set(mesh, cfg.refs, matcher=matcher, progress=_tqdm_progress("view"), workers=args.workers,
+    refs = build_reference_set(mesh, cfg.refs, matcher=matcher, progress=tqdm_progress("view"), workers=args.workers,
                                shape=cfg.shape)
-    path = save_reference_set(refs, out)
+    path = save_reference_set(refs, out, force=args.force)  # refused if another process wrote it meanwhile
     print(f"wrote {path} ({path.stat().st_size / 1e6:.1f} MB) in {refs.build_seconds:.1f} s")
     return 0
 
 
 def cmd_refs_show(args: argparse.Namespace) -> int:
     out = output_file(args.output, force=args.force, what="contact sheet")
+    not_an_input([out], [args.refs])
     if not 8 <= args.tile <= 1024:
         raise UsageError(f"--tile must be 8..1024 px, got {args.tile}")
     refs = load_reference_set(args.refs)
@@ -168,7 +131,7 @@ def cmd_refs_show(args: argparse.Namespace) -> int:
         raise UsageError(f"--views {bad} not in the set, which has views 0..{refs.n_views - 1}")
     encs = check_encodings(args.encodings.split(",")) if args.encodings else None
     sheet = contact_sheet(refs, encs, views, tile=args.tile)
-    save_png(out, sheet)
+    save_png(out, sheet, force=args.force)
     feats = ", ".join(f"{k} ({len(refs.features_for(*k.split('/', 1))[0])} images)" for k in refs.features) or "none"
     print(f"{args.refs}: {refs.mesh.name}, {refs.n_views} views x {refs.n_rolls} rolls at {refs.size} px; "
           f"features: {feats}; sheet -> {out}")
@@ -204,7 +167,7 @@ def _refs_for_estimate(args: argparse.Namespace, cfg: PixieConfig, cache: Path):
     path = reference_cache_path(mesh, cfg, cache)
     if not path.is_file():
         print(f"building references of {mesh.name} (preset {cfg.preset}) -> {path}")
-    refs = cached_reference_set(mesh, cfg, cache, progress=_tqdm_progress("view"))
+    refs = cached_reference_set(mesh, cfg, cache, progress=tqdm_progress("view"))
     return refs, path
 
 
@@ -215,6 +178,11 @@ def cmd_estimate(args: argparse.Namespace) -> int:
         raise PixieError("give --image PHOTO (one photo) or --batch FOLDER|MANIFEST (many)")
     if args.ray:
         raise PixieError("--ray distributes --batch runs; one --image runs here")
+    with collect_warnings(echo=say_warning) as notes:  # each warning printed once and kept for the result JSON
+        return _estimate_one(args, notes)
+
+
+def _estimate_one(args: argparse.Namespace, notes) -> int:
     cfg = _config(args)
     if args.K is None:
         raise UsageError("--K fx,fy,cx,cy is needed (the camera intrinsics in pixels)")
@@ -222,7 +190,7 @@ def cmd_estimate(args: argparse.Namespace) -> int:
         raise UsageError(no_box_message("--bbox x,y,w,h", "--mask MASK.png", "--bbox 0,0,WIDTH,HEIGHT"))
     out_json = output_file(args.output, force=args.force, what="result") if args.output else None
     out_png = output_file(args.overlay, force=args.force, what="overlay") if args.overlay else None
-    not_an_input([out_json, out_png], [args.refs, args.mesh, args.image, args.mask])
+    not_an_input([out_json, out_png], [args.refs, args.mesh, args.image, args.mask, args.config])
     K = parse_K(args.K)
     bbox = None if args.bbox is None else parse_numbers(args.bbox, "--bbox", 4, error=UsageError)
     refs, _ = _refs_for_estimate(args, cfg, cache_dir().parent / "refs")
@@ -236,9 +204,10 @@ def cmd_estimate(args: argparse.Namespace) -> int:
         check_query_mask(mask, image.shape[:2], box)
     _matcher_for(refs, cfg, args)
     est = PoseEstimator(refs, cfg)
-    res = est.estimate(image, K, bbox=bbox, mask=mask)
+    res = annotate(est.estimate(image, K, bbox=bbox, mask=mask), est, cfg, notes)
     T = res.T_cam_from_obj
-    status = "FAILED (" + res.message + ")" if res.failed else "ok"
+    n_warn = f" ({len(res.warnings)} warning{'s' * (len(res.warnings) > 1)} above)" if res.warnings else ""
+    status = "FAILED (" + res.message + ")" if res.failed else "ok" + n_warn
     print(f"pose {status}: score {res.score:.1f}, {res.n_inliers} inliers, view {res.view} roll {res.roll}, "
           f"confidence {res.confidence:.2f} (margin over the next hypothesis, not calibrated)")
     if T is not None:
@@ -249,11 +218,11 @@ def cmd_estimate(args: argparse.Namespace) -> int:
         record = res.to_dict()
         record["image"] = {"path": str(args.image), "sha256": sha256_file(args.image)}
         record["mask"] = None if not args.mask else {"path": str(args.mask), "sha256": sha256_file(args.mask)}
-        write_atomic(out_json, json.dumps(record, indent=1) + "\n")
+        write_atomic(out_json, json.dumps(record, indent=1) + "\n", force=args.force)
         print(f"result -> {out_json}")
     if out_png:
         label = f"{'FAILED ' if res.failed else ''}confidence {res.confidence:.2f}"
-        save_png(out_png, overlay_result(image, Renderer(refs.mesh), T, K, res.box_xyxy, label))
+        save_png(out_png, overlay_result(image, Renderer(refs.mesh), T, K, res.box_xyxy, label), force=args.force)
         print(f"overlay -> {out_png}")
     return 1 if res.failed else 0
 
@@ -272,6 +241,8 @@ def _estimate_batch(args: argparse.Namespace) -> int:
             raise PixieError("a manifest carries K and bbox/mask per row; drop --K/--bbox/--masks")
         items = read_manifest(src)
     out = output_dir(args.output, what="output folder")
+    not_an_input([out, *(out / n for n in BATCH_OUTPUTS)], [src, args.refs, args.mesh, args.config,
+                                                             *(i.image for i in items), *(i.mask for i in items)])
     refs, refs_path = _refs_for_estimate(args, cfg, out / "refs")
     _matcher_for(refs, cfg, args)
     del refs
@@ -325,6 +296,8 @@ def cmd_run(args: argparse.Namespace) -> int:
     output_dir(args.output, what="output folder")
     if args.refs_dir:
         output_dir(args.refs_dir, what="reference-set folder")
+    out = Path(args.output)
+    not_an_input([out, args.refs_dir, *(out / n for n in RUN_OUTPUTS)], [args.dataset, args.config])
     ds = BopDataset(args.dataset)
     known = sorted({t.obj_id for t in ds.targets()})
     unknown = sorted(set(objects or []) - set(known))
@@ -339,8 +312,8 @@ def cmd_run(args: argparse.Namespace) -> int:
                       refs_dir=args.refs_dir, threads=args.threads or 1, use_ray=args.ray, address=args.address,
                       workers=args.workers)
     print(f"results -> {csv} ({time.perf_counter() - t0:.0f} s); scoring")
-    run_eval(args.dataset, csv, args.output, report=not args.no_report,
-             only_estimated=args.max_targets is not None or args.objects is not None)
+    # the run's targets (all, or the --objects / --max-targets subset): one that ended without a pose is a miss
+    run_eval(args.dataset, csv, args.output, report=not args.no_report, targets=Path(args.output) / "targets.json")
     return 0
 
 
@@ -425,10 +398,6 @@ def build_parser() -> argparse.ArgumentParser:
     return p
 
 
-def _show_warning(message, category, filename, lineno, file=None, line=None) -> None:
-    print(f"pixie: warning: {message}", file=sys.stderr)
-
-
 def main(argv: list[str] | None = None) -> int:
     argv = sys.argv[1:] if argv is None else list(argv)
     if argv[:1] == ["demo"]:  # the demo parses its own options
@@ -447,7 +416,7 @@ def main(argv: list[str] | None = None) -> int:
     try:
         return _main(args)
     except Terminated:
-        _close_bars()
+        close_bars()
         say_terminated()
         return 143
     finally:
@@ -460,14 +429,14 @@ def _main(args: argparse.Namespace) -> int:
     logging.basicConfig(level=logging.INFO if args.verbose else logging.WARNING, format="%(levelname)s %(name)s: %(message)s")
     with warnings.catch_warnings():
         warnings.simplefilter("default")
-        warnings.showwarning = _show_warning  # one line each, without the source line
+        warnings.showwarning = show_warning  # one line each, without the source line
         try:
             return int(args.func(args) or 0)
         except PixieError as exc:
             print(f"pixie: error: {exc}", file=sys.stderr)
             return 2
         except KeyboardInterrupt:
-            _close_bars()
+            close_bars()
             print("pixie: interrupted", file=sys.stderr)
             print("  finished work is kept; batch and dataset runs resume when run again", file=sys.stderr)
             return 130
