@@ -27,7 +27,7 @@ from pixie.geometry.camera import check_image_K, parse_K, parse_numbers
 from pixie.config import DEFAULT_PRESET, PixieConfig, parse_override, preset_about, preset_names
 from pixie.app.demo import main as demo_main
 from pixie.references.encode import check_encodings
-from pixie.errors import DatasetError, PixieError, ReferenceSetError, UsageError
+from pixie.errors import ConfigError, DatasetError, PixieError, ReferenceSetError, UsageError
 from pixie.pipeline.estimator import PoseEstimator
 from pixie.eval import BopDataset, add_eval_arguments, main_eval, run_eval
 from pixie.matching import available_matchers, backend_weights
@@ -89,8 +89,7 @@ def _add_units_arg(p: argparse.ArgumentParser, what: str = "the mesh file") -> N
 # ------------------------------------------------------------------------------------------- refs
 def cmd_refs_build(args: argparse.Namespace) -> int:
     cfg = _config(args)
-    if args.workers < 1:
-        raise UsageError(f"--workers must be at least 1, got {args.workers}")
+    _at_least_one(args, "workers")
     if args.views is not None:
         n_fib = args.views - (6 if cfg.refs.canonical else 0)
         if n_fib < 0 or args.views < 1:
@@ -141,6 +140,9 @@ def cmd_refs_show(args: argparse.Namespace) -> int:
 # --------------------------------------------------------------------------------------- estimate
 def _matcher_for(refs, cfg: PixieConfig, args: argparse.Namespace) -> None:
     """Use the features stored in the set; refuse a matcher the user asked for that the set has none of."""
+    known = sorted(backend_weights())
+    if cfg.match.matcher not in known:  # a typo, not a set to rebuild
+        raise ConfigError(f"unknown matcher match.matcher={cfg.match.matcher!r}; known: {', '.join(known)}")
     stored = sorted({k.split("/")[0] for k in refs.features})
     if not stored or cfg.match.matcher in stored:
         return
@@ -171,7 +173,16 @@ def _refs_for_estimate(args: argparse.Namespace, cfg: PixieConfig, cache: Path):
     return refs, path
 
 
+def _at_least_one(args: argparse.Namespace, *names: str) -> None:
+    """Counts given on the command line (``--max-items``, ``--workers`` ...) are whole numbers >= 1."""
+    for name in names:
+        v = getattr(args, name, None)
+        if v is not None and v < 1:
+            raise UsageError(f"--{name.replace('_', '-')} must be at least 1, got {v}")
+
+
 def cmd_estimate(args: argparse.Namespace) -> int:
+    _at_least_one(args, "max_items", "workers")
     if args.batch:
         return _estimate_batch(args)
     if not args.image:
@@ -291,8 +302,7 @@ def cmd_weights(args: argparse.Namespace) -> int:
 def cmd_run(args: argparse.Namespace) -> int:
     cfg = _config(args)
     objects = None if not args.objects else parse_numbers(args.objects, "--objects", kind=int, error=UsageError)
-    if args.max_targets is not None and args.max_targets < 1:
-        raise UsageError(f"--max-targets must be at least 1, got {args.max_targets}")
+    _at_least_one(args, "max_targets", "workers")
     output_dir(args.output, what="output folder")
     if args.refs_dir:
         output_dir(args.refs_dir, what="reference-set folder")
