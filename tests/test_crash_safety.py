@@ -413,3 +413,24 @@ def test_seeded_sigkills_lose_nothing_and_leave_nothing(part, bop, tmp_path):
     assert _poses(tmp_path / "batch" / "results.csv") == _poses(tmp_path / "batch_ref" / "results.csv")
     assert len((tmp_path / "batch" / "results.jsonl").read_text().splitlines()) == 3
     _no_leftovers(tmp_path / "batch")
+
+
+def test_api_result_carries_the_warnings_and_settings(part, tmp_path):
+    """estimate_pose: the input warnings (EXIF orientation) are warned as usual AND kept in result.warnings, with
+    the pose warnings and the effective settings."""
+    from PIL import Image
+
+    import pixie
+
+    im = Image.open(part["photo"])
+    exif = Image.Exif()
+    exif[0x0112] = 6
+    im.save(tmp_path / "rot.jpg", exif=exif.tobytes(), quality=95)
+    cfg = pixie.PixieConfig.from_preset("default")
+    for item in ("refine.render_iters=0", "match.matcher=sift-nn", "match.max_keypoints=128"):
+        cfg.set(*item.split("="))
+    with pytest.warns(UserWarning, match="EXIF orientation 6"):
+        res = pixie.estimate_pose(part["refs"], tmp_path / "rot.jpg", K_TEXT, bbox=(0, 0, 320, 240), config=cfg)
+    assert any("EXIF orientation 6" in w for w in res.warnings)
+    assert any("covers 100 % of the image" in w for w in res.warnings)
+    assert res.to_dict()["settings"]["refs.views"] == 10
