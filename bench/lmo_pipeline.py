@@ -278,7 +278,7 @@ def summarise(ds, targets, recs, cfg, name, run_dir, objects, ar=True) -> dict:
         "refs_mb_per_object": _mean_or_none([v / 1e6 for (k, o), v in objects.refs_bytes.items() if k == refs_key(cfg)]),
         "config": cfg.to_dict(),
     }
-    if ar and ests:
+    if ar:  # over every target: one without a pose is a miss (BOP), also when none has one (AR 0, not absent)
         t0 = time.perf_counter()
         sc = evaluate(ds, ests, metrics=["mssd", "mspd"], targets=targets, n_points=2000)
         out["ar_no_vsd"] = sc.overall.get("AR_noVSD")

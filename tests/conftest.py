@@ -315,3 +315,32 @@ def check_result(res):
         assert k in res.timings and res.timings[k] > 0, f"timing {k!r} missing or not positive: {res.timings}"
     assert res.timings["total"] >= res.timings["extract"] + res.timings["match"] + res.timings["pnp"] - 1e-6
     json.dumps(res.to_dict())  # serialisable
+
+
+# ------------------------------------------------------------------ the command line in this process
+def run_cli(*argv) -> tuple[int, str, str]:
+    """Run ``pixie ARGV`` in this process; (exit code, stdout, stderr) (``from conftest import run_cli``)."""
+    import io
+    from contextlib import redirect_stderr, redirect_stdout
+
+    from pixie.app.cli import main
+
+    out, err = io.StringIO(), io.StringIO()
+    with redirect_stdout(out), redirect_stderr(err):
+        try:
+            rc = main([str(a) for a in argv])
+        except SystemExit as exc:  # argparse's own usage errors
+            rc = exc.code
+    return rc, out.getvalue(), err.getvalue()
+
+
+def assert_cli_error(res: tuple[int, str, str], *needles: str, rc: int = 2) -> str:
+    """The command failed with exit ``rc``, no traceback, and ONE ``pixie: error`` line containing every needle."""
+    code, out, err = res
+    assert "Traceback" not in err + out, err
+    assert code == rc, (code, out, err)
+    lines = [ln for ln in err.strip().splitlines() if ln.startswith("pixie: error")]
+    assert len(lines) == 1, err
+    for n in needles:
+        assert n.lower() in lines[0].lower(), (n, lines[0])
+    return lines[0]

@@ -1051,8 +1051,8 @@ def test_sigterm_watchdog_ends_a_hanging_clean_exit(tmp_path):
         "from pixie.app import signals as cli\n"
         "cli.TERM_GRACE_S = 1.0\n"
         "signal.signal(signal.SIGTERM, cli.on_sigterm)\n"
-        "print('ready', flush=True)\n"
         "try:\n"
+        "    print('ready', flush=True)  # inside the try: a SIGTERM right after it is caught too\n"
         "    time.sleep(60)\n"
         "except BaseException:\n"
         "    time.sleep(60)  # the clean-up hangs\n"
@@ -1069,3 +1069,185 @@ def test_sigterm_watchdog_ends_a_hanging_clean_exit(tmp_path):
         _reap(proc)
     assert proc.returncode == 143 and err.strip() == "pixie: terminated", err
     assert time.time() - t0 < 20
+
+
+# ------------------------------------------------------------------------- reliability, third round
+
+
+def _batch_folder(work, tmp_path, copies: int = 2) -> Path:
+    """A folder of ``copies`` photos with identical bytes."""
+    folder = tmp_path / "photos"
+    folder.mkdir()
+    for k in range(copies):
+        (folder / f"p{k}.png").write_bytes(work["photo"].read_bytes())
+    return folder
+
+
+def test_batch_of_identical_photos_keeps_one_result_each(work, tmp_path):
+    folder = _batch_folder(work, tmp_path)
+    rc, out, err = cli("estimate", "--refs", work["refs"], "--batch", folder, "--K", K_TEXT, "--bbox", work["box"],
+                       "-o", tmp_path / "out", "--no-overlays", *FAST)
+    assert rc == 0, err
+    assert "2 images, 0 cached, 2 to run" in out
+    rows = (tmp_path / "out" / "results.csv").read_text().splitlines()[1:]
+    assert sorted(int(r.split(",")[1]) for r in rows) == [0, 1]  # both im_ids, once each
+    recs = [json.loads(ln) for ln in (tmp_path / "out" / "results.jsonl").read_text().splitlines()]
+    assert [r["name"] for r in recs] == ["p0.png", "p1.png"] and len({r["key"] for r in recs}) == 2
+
+
+@pytest.mark.parametrize("value", ["-1", "0"])
+def test_batch_max_items_must_be_positive(work, tmp_path, value):
+    folder = _batch_folder(work, tmp_path, 1)
+    assert_error(cli("estimate", "--refs", work["refs"], "--batch", folder, "--K", K_TEXT, "--bbox", work["box"],
+                     "-o", tmp_path / "out", "--max-items", value, *FAST), "--max-items", value)
+    assert not (tmp_path / "out" / "journal.jsonl").exists()
+
+
+def test_batch_journal_reports_a_cut_last_line(work, tmp_path):
+    folder = _batch_folder(work, tmp_path)
+    args = ["estimate", "--refs", work["refs"], "--batch", folder, "--K", K_TEXT, "--bbox", work["box"],
+            "-o", tmp_path / "out", "--no-overlays", *FAST]
+    assert cli(*args)[0] == 0
+    journal = tmp_path / "out" / "journal.jsonl"
+    lines = journal.read_text().splitlines()
+    journal.write_text(lines[0] + "\n" + lines[1][: len(lines[1]) // 2])  # a kill cut the last line
+    rc, out, err = cli(*args)
+    assert rc == 0, err
+    assert "cut or corrupt (line 2)" in out and "2 images, 1 cached, 1 to run" in out
+    assert len((tmp_path / "out" / "results.jsonl").read_text().splitlines()) == 2
+
+
+def test_every_numeric_config_field_has_a_range():
+    import dataclasses
+
+    from pixie.config import RANGES, PixieConfig
+
+    cfg = PixieConfig()
+    missing = [f"{s.name}.{f.name}" for s in dataclasses.fields(cfg) if s.name != "preset"
+               for f in dataclasses.fields(getattr(cfg, s.name))
+               if f.type.split("|")[0].strip() in ("int", "float") and f"{s.name}.{f.name}" not in RANGES]
+    assert not missing, f"numeric config fields without a RANGES entry: {missing}"
+
+
+@pytest.mark.parametrize("item", ["shape.w_edge=-100", "shape.w_match=-1", "align.w_fit=-0.5", "align.min_fit=2",
+                                  "match.detection_threshold=5", "shape.region_weight=-3"])
+def test_negative_weights_and_out_of_range_thresholds_are_refused(work, tmp_path, item):
+    assert_error(cli("refs", "build", work["mesh"], "-o", tmp_path / "o.npz", "--set", item), item.split("=")[0])
+
+
+@pytest.mark.parametrize("what", ["zero R", "scaled R", "reflection", "nan t", "nan score"])
+def test_evaluate_refuses_estimates_that_are_not_poses(synthetic_bop, what):
+    from pixie.eval.datasets import BopDataset, PoseEstimate
+    from pixie.eval.evaluate import evaluate
+
+    root, _ = synthetic_bop
+    g = next(g for g in BopDataset(root).instances(1, 0) if g.obj_id == 1)
+    T, score = g.T_cam_from_obj.copy(), 1.0
+    if what == "zero R":
+        T[:3, :3] = 0
+    elif what == "scaled R":
+        T[:3, :3] *= 2
+    elif what == "reflection":
+        T[:3, 0] *= -1
+    elif what == "nan t":
+        T[0, 3] = np.nan
+    else:
+        score = float("nan")
+    with pytest.raises(ValueError, match="estimate #1 .scene 1, image 0, object 1."):
+        evaluate(root, [PoseEstimate(1, 0, 2, 1.0, BopDataset(root).instances(1, 0)[1].T_cam_from_obj),
+                        PoseEstimate(1, 0, 1, score, T)], metrics=["mssd"])
+
+
+def test_unknown_matcher_is_named_not_a_rebuild(work):
+    msg = assert_error(estimate(work, "--set", "match.matcher=bogus"), "unknown matcher", "bogus", "sift-nn")
+    assert "rebuild" not in msg
+
+
+def test_refs_with_inconsistent_arrays_name_the_set_and_field(work, tmp_path):
+    with np.load(work["refs"]) as z:
+        data = {k: z[k] for k in z.files}
+    data["depth_q"] = data["depth_q"][:7]  # 10 views of poses, 7 depth maps
+    np.savez(tmp_path / "cut.npz", **data)
+    assert_error(cli("estimate", "--refs", tmp_path / "cut.npz", "--image", work["photo"], "--K", K_TEXT, "--bbox",
+                     work["box"]), "cut.npz", "depth_q", "inconsistent")
+
+
+def test_load_reference_set_accepts_a_mesh_path(work, tmp_path):
+    from pixie.errors import ReferenceSetError
+    from pixie.references.store import load_reference_set
+
+    assert load_reference_set(work["refs"], mesh=work["mesh"]).n_views == 10
+    assert load_reference_set(work["refs"], mesh=str(work["mesh"])).n_views == 10
+    with pytest.raises(ReferenceSetError, match="another mesh"):
+        load_reference_set(work["refs"], mesh=write_ply(tmp_path / "t.ply", TETRA, TETRA_F))
+
+
+def test_console_warnings_reach_the_result_json(work, tmp_path):
+    rot = _jpeg_with_orientation(work["photo"], tmp_path / "rot.jpg", 6)
+    rc, out, err = estimate(work, "-o", tmp_path / "r.json", "--device", "cuda", "--preset", "paper", image=rot)
+    assert rc in (0, 1) and "Traceback" not in err
+    res = json.loads((tmp_path / "r.json").read_text())
+    printed = [ln[len("pixie: warning: "):] for ln in err.splitlines() if ln.startswith("pixie: warning: ")]
+    assert any("EXIF orientation 6" in w for w in res["warnings"])
+    cuda = any("CUDA" in w for w in printed)  # only where torch sees no GPU
+    assert cuda == any("CUDA" in w for w in res["warnings"])
+    assert any("preset paper asks for encodings" in w for w in res["warnings"])  # a set of another preset
+    assert res["settings"]["encodings"] == ["shade3_edges"] and res["preset"] == "paper"
+    assert sorted(set(printed)) == sorted(set(res["warnings"])) and len(printed) == len(set(printed))
+
+
+def test_units_hint_names_only_the_other_units(tmp_path):
+    import re
+
+    path = write_ply(tmp_path / "part.ply", TETRA, TETRA_F)  # 72 units across: 72 m declared as metres
+    rc, out, err = cli("refs", "build", path, "-o", tmp_path / "o.npz", "--units", "m", *SMALL)
+    assert rc == 0 and "implausible" in err and "--units mm" in err and not re.search(r"--units m\b", err), err
+    huge = write_ply(tmp_path / "huge.ply", [tuple(c * 1000 for c in v) for v in TETRA], TETRA_F)
+    rc, out, err = cli("refs", "build", huge, "-o", tmp_path / "o2.npz", "--units", "mm", *SMALL)
+    assert rc == 0 and "implausible" in err and "--units mm" not in err and "check the file" in err, err
+
+
+# ---------------------------------------------------------------------- "pose ok" for impossible poses
+
+
+def test_box_given_as_corners_past_the_image_edge_warns(work, tmp_path):
+    x, y, w, h = map(int, work["box"].split(","))
+    corners = f"{x},{y},{x + w + 60},{y + h}"  # x1,y1,x2,y2 read as x,y,w,h: runs far past the right edge
+    rc, out, err = estimate(work, "-o", tmp_path / "r.json", box=corners)
+    assert rc in (0, 1) and "Traceback" not in err
+    res = json.loads((tmp_path / "r.json").read_text())
+    assert any("past the right edge" in m and "x1,y1,x2,y2" in m for m in res["warnings"]), res["warnings"]
+    assert "past the right edge" in err
+
+
+def test_whole_image_box_is_not_a_confident_pose(work, tmp_path):
+    rc, out, err = estimate(work, "-o", tmp_path / "r.json", box=f"0,0,{W},{H}")
+    res = json.loads((tmp_path / "r.json").read_text())
+    assert any("covers 100 % of the image" in m for m in res["warnings"]), res["warnings"]
+    assert res["failed"] or ("warning" in out and "pose ok (" in out)
+
+
+def test_mesh_in_cm_read_as_mm_warns_about_its_size(work, tmp_path):
+    """The part (~100 mm) in a file in cm, read as mm: a 10 mm object cannot fill the box at any plausible distance."""
+    from pixie.config import RefsConfig
+    from pixie.geometry.mesh import from_arrays, load_mesh
+    from pixie.matching import get_matcher
+    from pixie.references.set import build_reference_set
+    from pixie.references.store import save_reference_set
+
+    part = load_mesh(work["mesh"])
+    small = from_arrays(part.vertices / 10.0, part.faces, name="part_cm")
+    refs = build_reference_set(small, RefsConfig(n_fibonacci=4, rotations=2, size=64, encodings=["shade3_edges"]),
+                               matcher=get_matcher("sift-nn", max_keypoints=128, window=16.0))
+    save_reference_set(refs, tmp_path / "cm.npz")
+    rc, out, err = cli("estimate", "--refs", tmp_path / "cm.npz", "--image", work["photo"], f"--K={K_TEXT}",
+                       f"--bbox={work['box']}", "-o", tmp_path / "r.json", *FAST)
+    res = json.loads((tmp_path / "r.json").read_text())
+    assert any("10.2 mm object" in m and "--units" in m for m in res["warnings"]), res["warnings"]
+    assert "pixie: warning:" in err
+
+
+def test_right_box_and_mesh_give_no_pose_warning(work, tmp_path):
+    rc, out, err = estimate(work, "-o", tmp_path / "r.json")
+    res = json.loads((tmp_path / "r.json").read_text())
+    assert not [m for m in res["warnings"] if "box" in m or "object" in m or "inliers" in m], res["warnings"]

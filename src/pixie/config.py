@@ -47,6 +47,7 @@ RANGES: dict[str, tuple[float | None, float | None, bool]] = {
     "refs.crop_pad": (1.0, 10.0, True),
     "query.crop_pad": (1.0, 10.0, True),
     "match.max_keypoints": (1, 100_000, True),
+    "match.detection_threshold": (-1.0, 1.0, True),  # <= 0: the max_keypoints strongest
     "match.window": (0, 10, False),
     "pose.ransac_iterations": (1, 10_000_000, True),
     "pose.reprojection_px": (0, 10_000, False),

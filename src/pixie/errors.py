@@ -39,3 +39,7 @@ class OutputError(PixieError):
 
 class UsageError(PixieError):
     """A command-line argument is malformed (not a number, wrong count, out of range)."""
+
+
+class EstimateError(DatasetError, ValueError):
+    """A pose estimate given to the evaluation is not a pose: R not a rotation, NaN/inf values (also a ValueError)."""

@@ -151,7 +151,8 @@ def draw_matches(img_q: np.ndarray, img_r: np.ndarray, kq: np.ndarray, kr: np.nd
     return canvas
 
 
-def save_png(path: str | Path, rgb: np.ndarray) -> Path:
-    """Write an RGB (or grey) image as PNG at exactly ``path`` (whatever its suffix), atomically, creating the folder."""
+def save_png(path: str | Path, rgb: np.ndarray, force: bool = True) -> Path:
+    """Write an RGB (or grey) image as PNG at exactly ``path`` (whatever its suffix), atomically, creating the folder;
+    without ``force`` an existing file is refused (:func:`pixie.paths.write_atomic`)."""
 
-    return write_atomic(path, encode_png(rgb))
+    return write_atomic(path, encode_png(rgb), force=force)

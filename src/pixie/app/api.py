@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import os
+import warnings
 from collections import OrderedDict
 from pathlib import Path
 from typing import Any, Sequence
@@ -17,6 +18,7 @@ from pixie.pipeline.query import load_image
 from pixie.pose.results import NO_BOX_MESSAGE
 from pixie.references.set import ReferenceSet
 from pixie.references.store import ensure_templates, load_reference_set
+from pixie.app.notes import annotate, collect_warnings
 from pixie.app.runner import cached_reference_set
 from pixie.weights import cache_dir
 
@@ -96,19 +98,23 @@ def estimate_pose(mesh_or_refs: Any, image: Any, K: Any, bbox: Sequence[float] |
     cfg = config if config is not None else PixieConfig.from_preset(preset)
     if device is not None:
         cfg.match.device = device
-    if isinstance(image, (str, os.PathLike)):
-        image = load_image(image)
-    if mask is not None and isinstance(mask, (str, os.PathLike)):
-        mask = load_image(mask)[..., 0] > 127
-    refs, refs_id = _reference_set(mesh_or_refs, cfg, units, Path(cache_dir) if cache_dir else None)
-    key = (refs_id, cfg.digest())
-    est = _ESTIMATORS.get(key)
-    if est is None:
-        est = PoseEstimator(refs, PixieConfig.from_dict(cfg.to_dict()))
-        est.cfg.preset = cfg.preset
-        _ESTIMATORS[key] = est
-        while len(_ESTIMATORS) > _MAX_ESTIMATORS:
-            _ESTIMATORS.popitem(last=False)
-    else:
-        _ESTIMATORS.move_to_end(key)
-    return est.estimate(image, parse_K(K), bbox=bbox, mask=mask)
+    with collect_warnings() as notes:  # kept in result.warnings, and warned again below as usual
+        if isinstance(image, (str, os.PathLike)):
+            image = load_image(image)
+        if mask is not None and isinstance(mask, (str, os.PathLike)):
+            mask = load_image(mask)[..., 0] > 127
+        refs, refs_id = _reference_set(mesh_or_refs, cfg, units, Path(cache_dir) if cache_dir else None)
+        key = (refs_id, cfg.digest())
+        est = _ESTIMATORS.get(key)
+        if est is None:
+            est = PoseEstimator(refs, PixieConfig.from_dict(cfg.to_dict()))
+            est.cfg.preset = cfg.preset
+            _ESTIMATORS[key] = est
+            while len(_ESTIMATORS) > _MAX_ESTIMATORS:
+                _ESTIMATORS.popitem(last=False)
+        else:
+            _ESTIMATORS.move_to_end(key)
+        res = est.estimate(image, parse_K(K), bbox=bbox, mask=mask)
+    for message in notes.items:  # the caller's own warning handling sees them as before
+        warnings.warn(message, UserWarning, stacklevel=2)
+    return annotate(res, est, cfg, notes)

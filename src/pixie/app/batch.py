@@ -37,11 +37,13 @@ import numpy as np
 
 from pixie.geometry.camera import parse_box, parse_K
 from pixie.app.cluster import WorkerSpec, ray_map, serial_map
+from pixie.app.notes import Notes, annotate, collect_warnings
+from pixie.app.runner import Journal
 from pixie.config import PixieConfig
-from pixie.errors import ConfigError, ImageError, PixieError
+from pixie.errors import ConfigError, ImageError, PixieError, UsageError
 from pixie.pipeline.estimator import PoseEstimator
 from pixie.eval.datasets import PoseEstimate, write_results_csv
-from pixie.paths import write_atomic
+from pixie.paths import remove_stale_temps, write_atomic
 from pixie.pipeline.query import bbox_from_mask, check_bbox, load_image
 from pixie.pose.results import NO_BOX_WHY
 from pixie.references.store import ensure_templates, load_reference_set
@@ -49,9 +51,10 @@ from pixie.geometry.render import Renderer
 from pixie.viz import encode_png, overlay_result
 from pixie.weights import sha256_file
 
-__all__ = ["BatchItem", "read_manifest", "folder_items", "run_batch", "IMAGE_SUFFIXES"]
+__all__ = ["BatchItem", "read_manifest", "folder_items", "run_batch", "IMAGE_SUFFIXES", "BATCH_OUTPUTS"]
 
 IMAGE_SUFFIXES = (".png", ".jpg", ".jpeg", ".bmp", ".tif", ".tiff")
+BATCH_OUTPUTS = ("results.csv", "results.jsonl", "index.html", "journal.jsonl")  # written into the output folder
 
 
 @dataclass
@@ -169,8 +172,10 @@ def sha256_bytes(data: bytes) -> str:
 
 
 def item_key(item: BatchItem, image_sha: str, mask_sha: str | None, config_digest: str, refs_sha: str) -> str:
-    """Cache key of one result: image and mask bytes, K, box, configuration and reference set."""
-    blob = json.dumps({"image": image_sha, "mask": mask_sha, "K": np.round(item.K, 9).tolist(),
+    """Cache key of one result: which item it is (image path, BOP ids: two photos of identical bytes are two
+    results), image and mask bytes, K, box, configuration and reference set."""
+    blob = json.dumps({"item": [str(item.image.resolve()), item.scene_id, item.im_id, item.obj_id],
+                       "image": image_sha, "mask": mask_sha, "K": np.round(item.K, 9).tolist(),
                        "bbox": None if item.bbox is None else np.round(item.bbox, 6).tolist(),
                        "config": config_digest, "refs": refs_sha}, sort_keys=True)
     return hashlib.sha256(blob.encode()).hexdigest()[:20]
@@ -183,8 +188,10 @@ def _setup(args: dict) -> dict:
     cfg = PixieConfig.from_dict(args["config"])
     cfg.preset = args.get("preset")
     refs = load_reference_set(args["refs"])
-    return {"est": PoseEstimator(refs, cfg), "renderer": Renderer(refs.mesh), "overlays": args["overlays"],
-            "mesh_sha256": args.get("mesh_sha256")}
+    with collect_warnings() as notes:  # CUDA asked for but absent ...: into every result's warnings
+        est = PoseEstimator(refs, cfg)
+    return {"est": est, "renderer": Renderer(refs.mesh), "overlays": args["overlays"], "cfg": cfg,
+            "mesh_sha256": args.get("mesh_sha256"), "notes": notes.items}
 
 
 def _process(state: dict, job: dict) -> dict:
@@ -193,12 +200,14 @@ def _process(state: dict, job: dict) -> dict:
     t0 = time.perf_counter()
     rec = {k: job[k] for k in ("key", "row", "name", "image", "image_sha256", "K", "bbox", "mask",
                                "scene_id", "im_id", "obj_id")}
+    notes = Notes().extend(state.get("notes"))
     try:
-        image = load_image(job["image"])
-        mask = load_mask(job["mask"]) if job["mask"] else None
-        K = np.asarray(job["K"], np.float64)
-        res = state["est"].estimate(image, K, bbox=job["bbox"], mask=mask)
-        rec["result"] = res.to_dict()
+        with collect_warnings() as seen:  # EXIF orientation, unusual K ...
+            image = load_image(job["image"])
+            mask = load_mask(job["mask"]) if job["mask"] else None
+            K = np.asarray(job["K"], np.float64)
+            res = state["est"].estimate(image, K, bbox=job["bbox"], mask=mask)
+        rec["result"] = annotate(res, state["est"], state["cfg"], notes.extend(seen.items)).to_dict()
         if state["overlays"]:
 
             bbox = job["bbox"] if job["bbox"] is not None else bbox_from_mask(mask)
@@ -207,24 +216,12 @@ def _process(state: dict, job: dict) -> dict:
             rec["overlay_png"] = encode_png(overlay_result(image, state["renderer"], res.T_cam_from_obj, K, box, label))
     except PixieError as exc:
         rec["result"] = {"T_cam_from_obj": None, "failed": True, "message": f"{type(exc).__name__}: {exc}",
-                         "score": 0.0, "confidence": 0.0}
+                         "score": 0.0, "confidence": 0.0, "warnings": notes.items}
     rec["time_s"] = time.perf_counter() - t0
     return rec
 
 
 # ------------------------------------------------------------------------------------------ driver
-def _read_journal(path: Path) -> dict[str, dict]:
-    out: dict[str, dict] = {}
-    if path.is_file():
-        for line in path.read_text().splitlines():
-            try:
-                rec = json.loads(line)
-                out[rec["key"]] = rec
-            except (ValueError, KeyError, TypeError):  # a line cut by a kill: that image runs again
-                continue
-    return out
-
-
 @dataclass
 class BatchSummary:
     n_items: int
@@ -257,6 +254,10 @@ def run_batch(items: list[BatchItem], out_dir: str | Path, config: PixieConfig, 
     del refs
     refs_sha = sha256_file(refs_path)
     digest = config.digest()
+    if max_items is not None and (isinstance(max_items, bool) or not isinstance(max_items, int) or max_items < 1):
+        raise UsageError(f"--max-items must be a whole number of at least 1, got {max_items!r}")
+    remove_stale_temps(out)
+    remove_stale_temps(out / "overlays")
     jobs = []
     for n, it in enumerate(items):
         img_sha = sha256_file(it.image) if it.image.is_file() else "missing"
@@ -266,46 +267,44 @@ def run_batch(items: list[BatchItem], out_dir: str | Path, config: PixieConfig, 
                      "bbox": None if it.bbox is None else it.bbox.tolist(),
                      "mask": None if it.mask is None else str(it.mask),
                      "scene_id": it.scene_id, "im_id": it.im_id, "obj_id": it.obj_id})
-    journal_path = out / "journal.jsonl"
-    done = _read_journal(journal_path)
+    journal = Journal(out / "journal.jsonl", key=lambda rec: rec["key"])  # the reader pixie run uses too
+    done = journal.records
     todo = [j for j in jobs if j["key"] not in done]
     n_cached = len(jobs) - len(todo)
     if max_items is not None:
         todo = todo[:max_items]
     echo(f"{len(jobs)} images, {n_cached} cached, {len(todo)} to run -> {out}" + (f" (Ray{' at ' + address if address else ''})" if use_ray else ""))
+    if journal.bad_lines:
+        echo(journal.bad_lines_note("images"))
     bar = None
     if show_progress and todo:
         from tqdm import tqdm
 
         bar = tqdm(total=len(todo), unit="image", dynamic_ncols=True)
     n_workers = 1
-    with open(journal_path, "a") as journal:
-        def on_result(_: int, rec: dict) -> None:
-            png = rec.pop("overlay_png", None)
-            rec["overlay"] = None
-            if png is not None:
-                name = f"overlays/{rec['row']:05d}_{Path(rec['name']).stem}.png"
-                write_atomic(out / name, png)
-                rec["overlay"] = name
-            rec.update(config_digest=digest, preset=config.preset, refs=str(refs_path), refs_sha256=refs_sha,
-                       mesh_sha256=mesh_sha)
-            journal.write(json.dumps(rec) + "\n")
-            journal.flush()
-            done[rec["key"]] = rec
-            if bar is not None:
-                bar.update(1)
+    def on_result(_: int, rec: dict) -> None:
+        png = rec.pop("overlay_png", None)
+        rec["overlay"] = None
+        if png is not None:
+            name = f"overlays/{rec['row']:05d}_{Path(rec['name']).stem}.png"
+            write_atomic(out / name, png)
+            rec["overlay"] = name
+        rec.update(config_digest=digest, preset=config.preset, refs=str(refs_path), refs_sha256=refs_sha,
+                   mesh_sha256=mesh_sha)
+        journal.append(rec)  # one flushed line; a line cut by a kill is reported and its image runs again
+        if bar is not None:
+            bar.update(1)
 
-
-        spec = WorkerSpec(_setup, _process, {"config": config.to_dict(), "preset": config.preset,
-                                             "refs": str(refs_path.resolve()), "overlays": overlays}, threads)
-        try:
-            if use_ray:
-                n_workers = ray_map(spec, todo, on_result, workers=workers, address=address)
-            elif todo:
-                serial_map(spec, todo, on_result)
-        finally:
-            if bar is not None:
-                bar.close()
+    spec = WorkerSpec(_setup, _process, {"config": config.to_dict(), "preset": config.preset,
+                                         "refs": str(refs_path.resolve()), "overlays": overlays}, threads)
+    try:
+        if use_ray:
+            n_workers = ray_map(spec, todo, on_result, workers=workers, address=address)
+        elif todo:
+            serial_map(spec, todo, on_result)
+    finally:
+        if bar is not None:
+            bar.close()
     records = [done[j["key"]] for j in jobs if j["key"] in done]
     ests = []
     for r in records:

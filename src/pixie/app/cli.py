@@ -23,16 +23,15 @@ from pathlib import Path
 import numpy as np
 
 from pixie._version import __version__
-from pixie.app.batch import folder_items, read_manifest, run_batch
+from pixie.app.batch import BATCH_OUTPUTS, folder_items, read_manifest, run_batch
 from pixie.geometry.camera import check_image_K, parse_K, parse_numbers
 from pixie.config import DEFAULT_PRESET, PixieConfig, parse_override, preset_about, preset_names
 from pixie.app.demo import main as demo_main
 from pixie.references.encode import check_encodings
-from pixie.errors import DatasetError, PixieError, ReferenceSetError, UsageError
+from pixie.errors import ConfigError, DatasetError, PixieError, ReferenceSetError, UsageError
 from pixie.pipeline.estimator import PoseEstimator
 from pixie.eval import BopDataset, add_eval_arguments, main_eval, run_eval
 from pixie.matching import available_matchers, backend_weights
-from pixie.geometry.mesh import load_mesh, units_note
 from pixie.threads import default_threads, set_threads
 from pixie.paths import not_an_input, output_dir, output_file, write_atomic
 from pixie.pose.results import no_box_message
@@ -40,8 +39,10 @@ from pixie.pipeline.query import bbox_from_mask, check_bbox, check_query_mask, l
 from pixie.references.set import build_reference_set
 from pixie.references.store import ensure_templates, check_output_path, load_reference_set, save_reference_set
 from pixie.geometry.render import Renderer
-from pixie.app.runner import cached_reference_set, make_matcher, reference_cache_path, run_dataset
-from pixie.app.signals import TERM, Terminated, on_sigterm, say_terminated
+from pixie.app.runner import RUN_OUTPUTS, cached_reference_set, make_matcher, reference_cache_path, run_dataset
+from pixie.app.console import close_bars, load_mesh_announced as _load_mesh, say_warning, show_warning, tqdm_progress
+from pixie.app.notes import annotate, collect_warnings
+from pixie.app.signals import Terminated, on_sigterm, say_terminated
 from pixie.app.track import Frame, Tracker, frame_paths, read_pose_file
 from pixie.viz import contact_sheet, overlay_result, save_png
 from pixie.weights import cache_dir, sha256_file, weights_status
@@ -82,56 +83,15 @@ def _add_parallel_args(p: argparse.ArgumentParser) -> None:
     p.add_argument("--workers", type=int, help="Ray workers (default: cluster CPUs // --threads)")
 
 
-def _load_mesh(path: str, units: str):
-    """load_mesh, announcing the units in one line and any size warning as one clean line. With ``--units auto``
-    (the user named no units) a size implausible even after auto-detection is an error, not a warning."""
-    with warnings.catch_warnings(record=True) as caught:
-        warnings.simplefilter("always")
-        mesh = load_mesh(path, units=units, implausible="error" if units == "auto" else "warn")
-    print(units_note(mesh))
-    for w in caught:
-        print(f"pixie: warning: {w.message}", file=sys.stderr)
-    return mesh
-
-
 def _add_units_arg(p: argparse.ArgumentParser, what: str = "the mesh file") -> None:
     p.add_argument("--units", default="auto", choices=["auto", "mm", "cm", "m"],
                    help=f"units of {what} (default auto: metres if it is under 2 units across, else mm; announced)")
 
 
-_OPEN_BARS: list = []  # progress bars still drawing, closed before an interruption is reported
-
-
-def _close_bars() -> None:
-    """Close the open progress bars, so that a message printed next stands on its own line."""
-    while _OPEN_BARS:
-        _OPEN_BARS.pop().close()
-
-
-def _tqdm_progress(total_label: str):
-    from tqdm import tqdm
-
-    bar = {"b": None}
-
-    def cb(done: int, total: int) -> None:
-        if TERM:
-            raise Terminated()
-        if bar["b"] is None:
-            bar["b"] = tqdm(total=total, unit=total_label, dynamic_ncols=True)
-            _OPEN_BARS.append(bar["b"])
-        bar["b"].update(done - bar["b"].n)
-        if done >= total:
-            bar["b"].close()
-            _OPEN_BARS.remove(bar["b"])
-
-    return cb
-
-
 # ------------------------------------------------------------------------------------------- refs
 def cmd_refs_build(args: argparse.Namespace) -> int:
     cfg = _config(args)
-    if args.workers < 1:
-        raise UsageError(f"--workers must be at least 1, got {args.workers}")
+    _at_least_one(args, "workers")
     if args.views is not None:
         n_fib = args.views - (6 if cfg.refs.canonical else 0)
         if n_fib < 0 or args.views < 1:
@@ -146,21 +106,23 @@ def cmd_refs_build(args: argparse.Namespace) -> int:
     if args.matcher and args.matcher != "none":
         cfg.match.matcher = args.matcher
     out = check_output_path(args.output, force=args.force)  # fail before minutes of rendering, not after
+    not_an_input([out], [args.mesh, args.config])
     mesh = _load_mesh(args.mesh, args.units)
     matcher = None if args.matcher == "none" else make_matcher(cfg)
     n_views = cfg.refs.n_fibonacci + (6 if cfg.refs.canonical else 0)
     print(f"{mesh.name}: {len(mesh.vertices)} vertices; "
           f"{n_views} views x {cfg.refs.rotations} rolls at {cfg.refs.size} px, encodings {cfg.refs.encodings}, "
           f"features: {matcher.name if matcher else 'none'}")
-    refs = build_reference_set(mesh, cfg.refs, matcher=matcher, progress=_tqdm_progress("view"), workers=args.workers,
+    refs = build_reference_set(mesh, cfg.refs, matcher=matcher, progress=tqdm_progress("view"), workers=args.workers,
                                shape=cfg.shape)
-    path = save_reference_set(refs, out)
+    path = save_reference_set(refs, out, force=args.force)  # refused if another process wrote it meanwhile
     print(f"wrote {path} ({path.stat().st_size / 1e6:.1f} MB) in {refs.build_seconds:.1f} s")
     return 0
 
 
 def cmd_refs_show(args: argparse.Namespace) -> int:
     out = output_file(args.output, force=args.force, what="contact sheet")
+    not_an_input([out], [args.refs])
     if not 8 <= args.tile <= 1024:
         raise UsageError(f"--tile must be 8..1024 px, got {args.tile}")
     refs = load_reference_set(args.refs)
@@ -170,7 +132,7 @@ def cmd_refs_show(args: argparse.Namespace) -> int:
         raise UsageError(f"--views {bad} not in the set, which has views 0..{refs.n_views - 1}")
     encs = check_encodings(args.encodings.split(",")) if args.encodings else None
     sheet = contact_sheet(refs, encs, views, tile=args.tile)
-    save_png(out, sheet)
+    save_png(out, sheet, force=args.force)
     feats = ", ".join(f"{k} ({len(refs.features_for(*k.split('/', 1))[0])} images)" for k in refs.features) or "none"
     print(f"{args.refs}: {refs.mesh.name}, {refs.n_views} views x {refs.n_rolls} rolls at {refs.size} px; "
           f"features: {feats}; sheet -> {out}")
@@ -180,6 +142,9 @@ def cmd_refs_show(args: argparse.Namespace) -> int:
 # --------------------------------------------------------------------------------------- estimate
 def _matcher_for(refs, cfg: PixieConfig, args: argparse.Namespace) -> None:
     """Use the features stored in the set; refuse a matcher the user asked for that the set has none of."""
+    known = sorted(backend_weights())
+    if cfg.match.matcher not in known:  # a typo, not a set to rebuild
+        raise ConfigError(f"unknown matcher match.matcher={cfg.match.matcher!r}; known: {', '.join(known)}")
     stored = sorted({k.split("/")[0] for k in refs.features})
     if not stored or cfg.match.matcher in stored:
         return
@@ -206,17 +171,31 @@ def _refs_for_estimate(args: argparse.Namespace, cfg: PixieConfig, cache: Path):
     path = reference_cache_path(mesh, cfg, cache)
     if not path.is_file():
         print(f"building references of {mesh.name} (preset {cfg.preset}) -> {path}")
-    refs = cached_reference_set(mesh, cfg, cache, progress=_tqdm_progress("view"))
+    refs = cached_reference_set(mesh, cfg, cache, progress=tqdm_progress("view"))
     return refs, path
 
 
+def _at_least_one(args: argparse.Namespace, *names: str) -> None:
+    """Counts given on the command line (``--max-items``, ``--workers`` ...) are whole numbers >= 1."""
+    for name in names:
+        v = getattr(args, name, None)
+        if v is not None and v < 1:
+            raise UsageError(f"--{name.replace('_', '-')} must be at least 1, got {v}")
+
+
 def cmd_estimate(args: argparse.Namespace) -> int:
+    _at_least_one(args, "max_items", "workers")
     if args.batch:
         return _estimate_batch(args)
     if not args.image:
         raise PixieError("give --image PHOTO (one photo) or --batch FOLDER|MANIFEST (many)")
     if args.ray:
         raise PixieError("--ray distributes --batch runs; one --image runs here")
+    with collect_warnings(echo=say_warning) as notes:  # each warning printed once and kept for the result JSON
+        return _estimate_one(args, notes)
+
+
+def _estimate_one(args: argparse.Namespace, notes) -> int:
     cfg = _config(args)
     if args.K is None:
         raise UsageError("--K fx,fy,cx,cy is needed (the camera intrinsics in pixels)")
@@ -225,7 +204,7 @@ def cmd_estimate(args: argparse.Namespace) -> int:
     T_init = read_pose_file(args.init_pose) if args.init_pose else None
     out_json = output_file(args.output, force=args.force, what="result") if args.output else None
     out_png = output_file(args.overlay, force=args.force, what="overlay") if args.overlay else None
-    not_an_input([out_json, out_png], [args.refs, args.mesh, args.image, args.mask])
+    not_an_input([out_json, out_png], [args.refs, args.mesh, args.image, args.mask, args.config])
     K = parse_K(args.K)
     bbox = None if args.bbox is None else parse_numbers(args.bbox, "--bbox", 4, error=UsageError)
     refs, _ = _refs_for_estimate(args, cfg, cache_dir().parent / "refs")
@@ -241,11 +220,12 @@ def cmd_estimate(args: argparse.Namespace) -> int:
     _matcher_for(refs, cfg, args)
     est = PoseEstimator(refs, cfg)
     if T_init is not None:  # refine the prior: no view search
-        res = est.estimate_from_prior(image, K, T_init, bbox=bbox, mask=mask)
+        res = annotate(est.estimate_from_prior(image, K, T_init, bbox=bbox, mask=mask), est, cfg, notes)
     else:
-        res = est.estimate(image, K, bbox=bbox, mask=mask)
+        res = annotate(est.estimate(image, K, bbox=bbox, mask=mask), est, cfg, notes)
     T = res.T_cam_from_obj
-    status = "FAILED (" + res.message + ")" if res.failed else "ok"
+    n_warn = f" ({len(res.warnings)} warning{'s' * (len(res.warnings) > 1)} above)" if res.warnings else ""
+    status = "FAILED (" + res.message + ")" if res.failed else "ok" + n_warn
     if T_init is not None:
         print(f"pose {status}: refined from --init-pose, aligned edge fit {res.confidence:.2f} (share of the visible "
               "contour on a photo edge)")
@@ -260,11 +240,11 @@ def cmd_estimate(args: argparse.Namespace) -> int:
         record = res.to_dict()
         record["image"] = {"path": str(args.image), "sha256": sha256_file(args.image)}
         record["mask"] = None if not args.mask else {"path": str(args.mask), "sha256": sha256_file(args.mask)}
-        write_atomic(out_json, json.dumps(record, indent=1) + "\n")
+        write_atomic(out_json, json.dumps(record, indent=1) + "\n", force=args.force)
         print(f"result -> {out_json}")
     if out_png:
         label = f"{'FAILED ' if res.failed else ''}confidence {res.confidence:.2f}"
-        save_png(out_png, overlay_result(image, Renderer(refs.mesh), T, K, res.box_xyxy, label))
+        save_png(out_png, overlay_result(image, Renderer(refs.mesh), T, K, res.box_xyxy, label), force=args.force)
         print(f"overlay -> {out_png}")
     return 1 if res.failed else 0
 
@@ -283,6 +263,8 @@ def _estimate_batch(args: argparse.Namespace) -> int:
             raise PixieError("a manifest carries K and bbox/mask per row; drop --K/--bbox/--masks")
         items = read_manifest(src)
     out = output_dir(args.output, what="output folder")
+    not_an_input([out, *(out / n for n in BATCH_OUTPUTS)], [src, args.refs, args.mesh, args.config,
+                                                             *(i.image for i in items), *(i.mask for i in items)])
     refs, refs_path = _refs_for_estimate(args, cfg, out / "refs")
     _matcher_for(refs, cfg, args)
     del refs
@@ -354,7 +336,7 @@ def cmd_track(args: argparse.Namespace) -> int:
                                  "T_cam_from_obj": None if r.T_cam_from_obj is None else r.T_cam_from_obj.tolist()}))
         print(f"{p.name}: {st.mode}{' (' + st.reason + ')' if st.reason and st.mode == 'search' else ''}, "
               f"{'FAILED ' + r.message if r.failed else 'ok'}, fit/confidence {r.confidence:.2f}, {st.seconds:.2f} s")
-    write_atomic(out, "\n".join(lines) + "\n")
+    write_atomic(out, "\n".join(lines) + "\n", force=args.force)
     dt = time.perf_counter() - t0
     print(f"{len(paths)} frames in {dt:.1f} s ({dt / len(paths):.2f} s/frame), {n_search} searched -> {out}")
     return 0
@@ -364,11 +346,12 @@ def cmd_track(args: argparse.Namespace) -> int:
 def cmd_run(args: argparse.Namespace) -> int:
     cfg = _config(args)
     objects = None if not args.objects else parse_numbers(args.objects, "--objects", kind=int, error=UsageError)
-    if args.max_targets is not None and args.max_targets < 1:
-        raise UsageError(f"--max-targets must be at least 1, got {args.max_targets}")
+    _at_least_one(args, "max_targets", "workers")
     output_dir(args.output, what="output folder")
     if args.refs_dir:
         output_dir(args.refs_dir, what="reference-set folder")
+    out = Path(args.output)
+    not_an_input([out, args.refs_dir, *(out / n for n in RUN_OUTPUTS)], [args.dataset, args.config])
     ds = BopDataset(args.dataset)
     known = sorted({t.obj_id for t in ds.targets()})
     unknown = sorted(set(objects or []) - set(known))
@@ -383,8 +366,8 @@ def cmd_run(args: argparse.Namespace) -> int:
                       refs_dir=args.refs_dir, threads=args.threads or 1, use_ray=args.ray, address=args.address,
                       workers=args.workers)
     print(f"results -> {csv} ({time.perf_counter() - t0:.0f} s); scoring")
-    run_eval(args.dataset, csv, args.output, report=not args.no_report,
-             only_estimated=args.max_targets is not None or args.objects is not None)
+    # the run's targets (all, or the --objects / --max-targets subset): one that ended without a pose is a miss
+    run_eval(args.dataset, csv, args.output, report=not args.no_report, targets=Path(args.output) / "targets.json")
     return 0
 
 
@@ -486,10 +469,6 @@ def build_parser() -> argparse.ArgumentParser:
     return p
 
 
-def _show_warning(message, category, filename, lineno, file=None, line=None) -> None:
-    print(f"pixie: warning: {message}", file=sys.stderr)
-
-
 def main(argv: list[str] | None = None) -> int:
     argv = sys.argv[1:] if argv is None else list(argv)
     if argv[:1] == ["demo"]:  # the demo parses its own options
@@ -508,7 +487,7 @@ def main(argv: list[str] | None = None) -> int:
     try:
         return _main(args)
     except Terminated:
-        _close_bars()
+        close_bars()
         say_terminated()
         return 143
     finally:
@@ -521,14 +500,14 @@ def _main(args: argparse.Namespace) -> int:
     logging.basicConfig(level=logging.INFO if args.verbose else logging.WARNING, format="%(levelname)s %(name)s: %(message)s")
     with warnings.catch_warnings():
         warnings.simplefilter("default")
-        warnings.showwarning = _show_warning  # one line each, without the source line
+        warnings.showwarning = show_warning  # one line each, without the source line
         try:
             return int(args.func(args) or 0)
         except PixieError as exc:
             print(f"pixie: error: {exc}", file=sys.stderr)
             return 2
         except KeyboardInterrupt:
-            _close_bars()
+            close_bars()
             print("pixie: interrupted", file=sys.stderr)
             print("  finished work is kept; batch and dataset runs resume when run again", file=sys.stderr)
             return 130

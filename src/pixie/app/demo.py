@@ -29,6 +29,7 @@ from pixie.geometry.mesh import Mesh, from_arrays, load_mesh
 from pixie.pipeline.query import bbox_from_mask
 from pixie.geometry.render import Renderer
 from pixie.app.runner import cached_reference_set
+from pixie.paths import not_an_input
 from pixie.viz import contact_sheet, overlay_pose, save_png
 from pixie.threads import default_threads, set_threads
 from pixie.weights import repo_root, shared_root
@@ -102,6 +103,8 @@ def main(argv: list[str] | None = None) -> int:
     lmo = lmo_dir()
 
     if lmo is not None and not args.synthetic:
+        # the demo writes overlay.png, references.png and refs/ into --out: never into (a folder of) the dataset
+        not_an_input([out, out / "refs"], [lmo, Path(lmo) / "models", Path(lmo) / "test"])
         ds = BopDataset(lmo)
         mesh = load_mesh(ds.model_path(args.obj_id))
         image, K = ds.load_rgb(2, args.im_id), ds.camera(2, args.im_id).K

@@ -18,6 +18,8 @@ import hashlib
 import json
 import logging
 import os
+import socket
+import sys
 import time
 from pathlib import Path
 from typing import Callable, Hashable
@@ -26,18 +28,23 @@ import numpy as np
 
 from pixie._version import __version__
 from pixie.app.cluster import WorkerSpec, ray_map
+from pixie.app.notes import collect_warnings
 from pixie.threads import set_threads
 from pixie.config import PixieConfig
-from pixie.errors import DatasetError, PixieError, ReferenceSetError
+from pixie.errors import DatasetError, OutputError, PixieError, ReferenceSetError
 from pixie.pipeline.estimator import PoseEstimator
 from pixie.eval.datasets import BopDataset, PoseEstimate, Target, write_results_csv
 from pixie.matching import Matcher, matcher_from_config
 from pixie.geometry.mesh import Mesh, load_mesh
-from pixie.paths import output_dir, write_atomic
+from pixie.paths import output_dir, pid_alive, remove_stale_temps, write_atomic
 from pixie.references.set import ReferenceSet, build_reference_set
 from pixie.references.store import ensure_templates, load_reference_set, save_reference_set
 
 log = logging.getLogger(__name__)
+
+# written into pixie run's output folder (scores.json, per_target.csv and report.html by the scoring after it)
+RUN_OUTPUTS = ("results.csv", "per_target.jsonl", "config.json", "targets.json", "scores.json", "per_target.csv",
+               "report.html")
 
 
 def refs_key(mesh: Mesh, cfg: PixieConfig) -> str:
@@ -58,28 +65,76 @@ def reference_cache_path(mesh: Mesh, cfg: PixieConfig, cache_dir: str | Path) ->
     return Path(cache_dir) / f"{mesh.name}-{refs_key(mesh, cfg)}.npz"
 
 
+LOCK_WAIT_S = 6 * 3600.0  # the longest cached_reference_set waits for another process's build
+
+
+def _lock_owner(lock: Path) -> dict | None:
+    """The ``{"pid", "host", "time"}`` written into a lock file; None when it is gone, empty or unreadable."""
+    try:
+        rec = json.loads(lock.read_text())
+    except (OSError, ValueError):
+        return None
+    return rec if isinstance(rec, dict) and isinstance(rec.get("pid"), int) else None
+
+
+def lock_is_stale(lock: Path, unreadable_after_s: float = 30.0) -> bool:
+    """A lock whose builder is gone: its pid no longer runs on this host, or (a lock of an older pixie, without
+    owner) it is older than ``unreadable_after_s``. A lock of another host is never stale (we cannot ask it)."""
+    owner = _lock_owner(lock)
+    if owner is None:
+        try:
+            return time.time() - lock.stat().st_mtime > unreadable_after_s
+        except OSError:
+            return False  # gone meanwhile: not ours to remove
+    return owner.get("host") == socket.gethostname() and not pid_alive(owner["pid"])
+
+
+def _take_lock(lock: Path) -> bool:
+    """Create ``lock`` holding this process's pid and host, atomically (a hard link of a finished temporary file,
+    so nobody reads a half-written lock); False when it exists."""
+    body = json.dumps({"pid": os.getpid(), "host": socket.gethostname(), "time": time.time()})
+    try:
+        write_atomic(lock, body, force=False)
+        return True
+    except OutputError:
+        return False
+
+
 def cached_reference_set(mesh: Mesh, cfg: PixieConfig, cache_dir: str | Path, matcher: Matcher | None = None,
                          progress: Callable[[int, int], None] | None = None, workers: int = 1,
-                         echo: Callable[[str], None] | None = None, poll_s: float = 5.0) -> ReferenceSet:
+                         echo: Callable[[str], None] | None = None, poll_s: float = 2.0,
+                         max_wait_s: float = LOCK_WAIT_S) -> ReferenceSet:
     """Load the reference set of ``mesh`` for ``cfg`` from ``cache_dir``, building (and saving) it if absent.
 
-    Several processes may share a cache: the first to need a set builds it under a lock file
-    (``<set>.lock``) while the others wait for it (polling every ``poll_s`` seconds). A stale lock of a
-    killed builder must be removed by hand (the message names it).
+    Several processes may share a cache: the first to need a set builds it under a lock file (``<set>.lock``,
+    holding its pid and host) while the others wait for it, saying so once (``echo``, default stderr), polling
+    every ``poll_s`` seconds for at most ``max_wait_s``. A lock whose process is gone (killed while it built) is
+    taken over at once; one that outlives ``max_wait_s`` raises :class:`ReferenceSetError` naming it.
     """
     path = reference_cache_path(mesh, cfg, cache_dir)
     path.parent.mkdir(parents=True, exist_ok=True)
+    remove_stale_temps(path.parent)
+    say = echo or (lambda msg: print(msg, file=sys.stderr, flush=True))
     lock = path.with_suffix(".lock")
     owner = False
-    if not path.is_file():
-        try:
-            os.close(os.open(lock, os.O_CREAT | os.O_EXCL))
+    t_wait, told = time.monotonic(), False
+    while not path.is_file():
+        if _take_lock(lock):
             owner = True
-        except FileExistsError:
-            if echo:
-                echo(f"waiting for {path.name}, being built by another process (else delete {lock})")
-            while lock.exists() and not path.is_file():
-                time.sleep(poll_s)
+            break
+        if lock_is_stale(lock):
+            say(f"taking over {lock.name}: the process that held it ({_describe(lock)}) is gone")
+            lock.unlink(missing_ok=True)
+            continue
+        waited = time.monotonic() - t_wait
+        if waited > max_wait_s:
+            raise ReferenceSetError(f"waited {waited:.0f} s for {path.name}, being built by {_describe(lock)}: if "
+                                    f"that process is gone, delete {lock}")
+        if not told:
+            say(f"waiting for {path.name}, being built by {_describe(lock)} (at most {max_wait_s:.0f} s; if that "
+                f"process is gone, delete {lock})")
+            told = True
+        time.sleep(poll_s)
     try:
         if path.is_file():
             try:
@@ -100,6 +155,11 @@ def cached_reference_set(mesh: Mesh, cfg: PixieConfig, cache_dir: str | Path, ma
     finally:
         if owner:
             lock.unlink(missing_ok=True)
+
+
+def _describe(lock: Path) -> str:
+    o = _lock_owner(lock)
+    return f"pid {o['pid']} on {o.get('host', '?')}" if o else "another process"
 
 
 class Journal:
@@ -133,6 +193,12 @@ class Journal:
                     self.records[key(rec)] = rec
                 except (ValueError, KeyError, TypeError, IndexError):  # a line cut by a kill: run that work again
                     self.bad_lines.append(n)
+
+    def bad_lines_note(self, what: str = "targets") -> str:
+        """The one line that reports cut or corrupt lines (whose work runs again)."""
+        n = self.bad_lines
+        return (f"warning: {self.path}: {len(n)} line(s) cut or corrupt (line {', '.join(map(str, n[:10]))}"
+                f"{' ...' if len(n) > 10 else ''}); their {what} run again")
 
     def __contains__(self, key: Hashable) -> bool:
         return key in self.records
@@ -172,21 +238,24 @@ def run_dataset(dataset_root: str | Path, out_dir: str | Path, config: PixieConf
     cfg = config or PixieConfig()
     ds = BopDataset(dataset_root)
     out = output_dir(out_dir)
+    remove_stale_temps(out)
     refs_dir = Path(refs_dir) if refs_dir else out / "refs"
-    targets = [t for t in ds.targets() if objects is None or t.obj_id in objects]
-    if max_targets is not None and len(targets) > max_targets:
-        targets = [targets[i] for i in np.linspace(0, len(targets) - 1, max_targets).round().astype(int)]
+    targets = select_targets(ds, objects, max_targets)
+    # the targets this run is about (scored by `pixie run`, or `pixie eval --targets`): one without a pose is a miss
+    write_atomic(out / "targets.json", json.dumps([dict(scene_id=t.scene_id, im_id=t.im_id, obj_id=t.obj_id,
+                                                        inst_count=t.inst_count) for t in targets]))
     journal = Journal(out / "per_target.jsonl", key=lambda rec: tuple(rec["key"]))
     prints = {o: run_fingerprint(cfg, ds, o) for o in sorted({t.obj_id for t in targets})}
     cached = {_tkey(t) for t in targets if _valid_record(journal.get(_tkey(t)), prints[t.obj_id])}
-    stale = sum(_tkey(t) in journal and _tkey(t) not in cached for t in targets)
+    errors = sum(bool((journal.get(_tkey(t)) or {}).get("error")) for t in targets)
+    stale = sum(_tkey(t) in journal and _tkey(t) not in cached for t in targets) - errors
     todo = [t for t in targets if _tkey(t) not in cached]
     where = f" (Ray{' at ' + address if address else ''})" if use_ray else ""
     echo(f"{len(targets)} targets, {len(cached)} cached, {len(todo)} to run -> {out}{where}")
     if journal.bad_lines:
-        echo(f"warning: {journal.path}: {len(journal.bad_lines)} line(s) cut or corrupt (line "
-             f"{', '.join(map(str, journal.bad_lines[:10]))}{' ...' if len(journal.bad_lines) > 10 else ''}); "
-             "their targets run again")
+        echo(journal.bad_lines_note("targets"))
+    if errors:
+        echo(f"{errors} target(s) that could not be read last time run again")
     if stale:
         echo(f"{stale} earlier result(s) in {journal.path.name} were made with another config, code version, dataset "
              "or model: they run again")
@@ -214,7 +283,7 @@ def _run_serial(ds: BopDataset, cfg: PixieConfig, todo: list[Target], refs_dir: 
     for obj_id in sorted({t.obj_id for t in todo}):
         mesh = load_mesh(ds.model_path(obj_id))
         t0 = time.perf_counter()
-        refs = cached_reference_set(mesh, cfg, refs_dir, matcher=matcher)
+        refs = cached_reference_set(mesh, cfg, refs_dir, matcher=matcher, echo=echo)
         echo(f"obj {obj_id}: reference set ready in {time.perf_counter() - t0:.1f} s")
         est = PoseEstimator(refs, cfg, matcher=matcher)
         for t in (t for t in todo if t.obj_id == obj_id):
@@ -233,7 +302,7 @@ def _run_ray(ds: BopDataset, cfg: PixieConfig, todo: list[Target], refs_dir: Pat
     for obj_id in sorted({t.obj_id for t in todo}):
         mesh = load_mesh(ds.model_path(obj_id))
         t0 = time.perf_counter()
-        cached_reference_set(mesh, cfg, refs_dir, matcher=matcher)
+        cached_reference_set(mesh, cfg, refs_dir, matcher=matcher, echo=echo)
         refs_paths[obj_id] = str(reference_cache_path(mesh, cfg, refs_dir).resolve())
         echo(f"obj {obj_id}: reference set ready in {time.perf_counter() - t0:.1f} s")
     todo = sorted(todo, key=lambda t: (t.obj_id, t.scene_id, t.im_id))  # workers keep the estimator at hand
@@ -273,25 +342,43 @@ def _process_bop(state: dict, item: list[int]) -> dict:
 
 
 def _run_target(ds: BopDataset, est, t: Target) -> dict:
-    """Estimate the pose of each GT instance of the target object in one image (GT boxes as crops)."""
-    img = ds.load_rgb(t.scene_id, t.im_id)
-    K = ds.camera(t.scene_id, t.im_id).K
+    """Estimate the pose of each GT instance of the target object in one image (GT boxes as crops).
+
+    A target whose image or annotations cannot be read is recorded failed with the reason (``error``: it runs
+    again next time) and counts as a miss; the run goes on."""
     rows = []
-    insts = sorted((g for g in ds.instances(t.scene_id, t.im_id) if g.obj_id == t.obj_id),
-                   key=lambda g: -(g.visib_fract if g.visib_fract is not None else 1.0))
+    try:
+        img = ds.load_rgb(t.scene_id, t.im_id)
+        K = ds.camera(t.scene_id, t.im_id).K
+        insts = sorted((g for g in ds.instances(t.scene_id, t.im_id) if g.obj_id == t.obj_id),
+                       key=lambda g: -(g.visib_fract if g.visib_fract is not None else 1.0))
+    except (PixieError, OSError) as exc:
+        why = str(exc) if f"image {t.im_id}" in str(exc) else f"scene {t.scene_id} image {t.im_id}: {exc}"
+        return {"key": list(_tkey(t)), "error": why, "estimates": [
+            {"T": None, "score": 0.0, "failed": True, "time": 0.0, "timings": {"error": why}}] * t.inst_count}
     for inst in insts[: t.inst_count]:
         t0 = time.perf_counter()
+        warns: list[str] = []
         try:
             if inst.box_visib is None:
                 raise DatasetError(f"scene {t.scene_id} image {t.im_id} object {t.obj_id}: the dataset gives no "
                                    "bbox_visib (scene_gt_info.json), and pixie needs the object's box")
-            r = est.estimate(img, K, bbox=inst.box_visib)
-            T, score, failed, timings = r.T_cam_from_obj, r.score, r.failed, r.timings
+            with collect_warnings() as notes:
+                r = est.estimate(img, K, bbox=inst.box_visib)
+            T, score, failed, timings, warns = r.T_cam_from_obj, r.score, r.failed, r.timings, notes.merge(r.warnings)
         except PixieError as exc:
             T, score, failed, timings = None, 0.0, True, {"error": str(exc)}
         rows.append({"T": None if T is None else T.tolist(), "score": score, "failed": failed,
-                     "time": time.perf_counter() - t0, "timings": timings})
+                     "time": time.perf_counter() - t0, "timings": timings, "warnings": warns})
     return {"key": list(_tkey(t)), "estimates": rows}
+
+
+def select_targets(ds: BopDataset, objects: list[int] | None = None, max_targets: int | None = None) -> list[Target]:
+    """The targets of a run: the dataset's (of ``objects``), ``max_targets`` of them spread evenly when given."""
+    targets = [t for t in ds.targets() if objects is None or t.obj_id in objects]
+    if max_targets is not None and len(targets) > max_targets:
+        targets = [targets[i] for i in np.linspace(0, len(targets) - 1, max_targets).round().astype(int)]
+    return targets
 
 
 @functools.lru_cache(maxsize=1)
@@ -315,7 +402,7 @@ def run_fingerprint(cfg: PixieConfig, ds: BopDataset, obj_id: int) -> str:
 
 def _valid_record(rec: dict | None, fingerprint: str) -> bool:
     """A journal record that can be reused: made under ``fingerprint`` and well formed."""
-    if rec is None or rec.get("run") != fingerprint or not isinstance(rec.get("estimates"), list):
+    if rec is None or rec.get("run") != fingerprint or rec.get("error") or not isinstance(rec.get("estimates"), list):
         return False
     try:
         for e in rec["estimates"]:

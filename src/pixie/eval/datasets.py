@@ -510,16 +510,29 @@ def _parse_result_line(line: str, lineno: int, path: Path) -> PoseEstimate:
         raise DatasetError(f"{where}: R has {R.size} values, expected 9 (row-major, space-separated)")
     if t.size != 3:
         raise DatasetError(f"{where}: t has {t.size} values, expected 3 (mm, space-separated)")
-    for name, v in (("score", np.array([score])), ("R", R), ("t", t), ("time", np.array([tm]))):
+    R = check_pose_values(R, t, score, tm, where)
+    return PoseEstimate(scene_id, im_id, obj_id, score, pose_from_Rt(R, t), tm)
+
+
+def check_pose_values(R, t, score: float, tm: float, where: str, error: type[Exception] = DatasetError) -> np.ndarray:
+    """The one check of an estimate's numbers (results files and :func:`pixie.eval.evaluate` alike): finite score,
+    R, t and time, R a rotation (orthonormal within ``ROTATION_ATOL``, det +1). Returns R as (3, 3).
+
+    Raises
+    ------
+    ``error`` naming ``where`` and what is wrong.
+    """
+    R, t = np.asarray(R, np.float64), np.asarray(t, np.float64)
+    for name, v in (("score", np.array([score], np.float64)), ("R", R), ("t", t), ("time", np.array([tm], np.float64))):
         if not np.all(np.isfinite(v)):
-            raise DatasetError(f"{where}: {name} has NaN/inf values")
+            raise error(f"{where}: {name} has NaN/inf values")
     R = R.reshape(3, 3)
     dev = float(np.abs(R @ R.T - np.eye(3)).max())
     if dev > ROTATION_ATOL:
-        raise DatasetError(f"{where}: R is not orthonormal (max |R R^T - I| = {dev:.3g})")
+        raise error(f"{where}: R is not orthonormal, so not a rotation (max |R R^T - I| = {dev:.3g})")
     if np.linalg.det(R) < 0:
-        raise DatasetError(f"{where}: R is a reflection (det < 0)")
-    return PoseEstimate(scene_id, im_id, obj_id, score, pose_from_Rt(R, t), tm)
+        raise error(f"{where}: R is a reflection (det < 0)")
+    return R
 
 
 def read_results_csv(path: str | Path) -> list[PoseEstimate]:

@@ -28,7 +28,8 @@ from pathlib import Path
 import numpy as np
 
 from pixie.eval import pose_error as M
-from pixie.eval.datasets import BopDataset, GtInstance, PoseEstimate, read_results_csv
+from pixie.errors import EstimateError
+from pixie.eval.datasets import BopDataset, GtInstance, PoseEstimate, check_pose_values, read_results_csv
 from pixie.eval.objects import ObjectData, load_object_data
 from pixie.eval.scores import (
     DEFAULT_METRICS,
@@ -45,6 +46,19 @@ from pixie.eval.scores import (
 )
 from pixie.eval.shape_metrics import aps
 from pixie.geometry.rotations import orthonormalize
+
+
+def _checked(results: Iterable[PoseEstimate]) -> list[PoseEstimate]:
+    """Estimates given as objects, held to the rules of a results file (:func:`check_pose_values`)."""
+    out = list(results)
+    for k, e in enumerate(out):
+        where = f"estimate #{k} (scene {e.scene_id}, image {e.im_id}, object {e.obj_id})"
+        T = np.asarray(e.T_cam_from_obj, np.float64) if e.T_cam_from_obj is not None else None
+        if T is None or T.shape != (4, 4):
+            raise EstimateError(f"{where}: T_cam_from_obj must be a 4x4 pose, got "
+                                f"{None if T is None else T.shape}")
+        check_pose_values(T[:3, :3], T[:3, 3], e.score, e.time, where, EstimateError)
+    return out
 
 
 def _group_estimates(results: Sequence[PoseEstimate]) -> dict[tuple[int, int, int], list[PoseEstimate]]:
@@ -222,7 +236,7 @@ def evaluate(
     """
     t0 = time.perf_counter()
     ds = dataset if isinstance(dataset, BopDataset) else BopDataset(Path(dataset))
-    ests = read_results_csv(results) if isinstance(results, (str, Path)) else list(results)
+    ests = read_results_csv(results) if isinstance(results, (str, Path)) else _checked(results)
     mets = normalize_metrics(metrics)
     targets = ds.targets() if targets is None else list(targets)
     delta = vsd_delta if vsd_delta is not None else M.vsd_delta(ds.name)

@@ -20,7 +20,9 @@ from pixie.eval.objects import ObjectData
 from pixie.eval.report import write_report
 from pixie.eval.scores import ALL_METRICS, DEFAULT_METRICS, Scores, normalize_metrics
 from pixie.eval.writers import format_table, write_per_target_csv, write_scores_json
-from pixie.paths import output_dir
+from pixie.paths import not_an_input, output_dir
+
+EVAL_OUTPUTS = ("scores.json", "per_target.csv", "report.html")  # written into the output folder
 
 
 def run_eval(
@@ -34,6 +36,7 @@ def run_eval(
     progress: bool = False,
     echo: Callable[[str], None] | None = print,
     only_estimated: bool = False,
+    targets: list | str | Path | None = None,
 ) -> Scores:
     """Evaluate a results CSV and write ``scores.json``, ``per_target.csv`` and ``report.html``.
 
@@ -45,8 +48,10 @@ def run_eval(
     metrics, n_points : see :func:`evaluate`
     report : write the HTML report (with ``n_overlays`` best and worst target overlays)
     echo : function printing the summary table (None = silent)
-    only_estimated : score only the targets that have at least one row in the results (a subset run);
-        by default every target of the dataset counts and a missing estimate is a miss, as in BOP
+    only_estimated : score only the targets that have at least one row in the results; a target without a row
+        is then left out, not a miss (not BOP's protocol: prefer ``targets``)
+    targets : the targets to score (a list of Target, or a BOP targets JSON such as ``pixie run``'s
+        ``targets.json``); by default every target of the dataset. A target without an estimate is a miss, as in BOP
 
     Returns
     -------
@@ -56,10 +61,11 @@ def run_eval(
     out.mkdir(parents=True, exist_ok=True)
     ds = BopDataset(Path(dataset_root))
     objects: dict[int, ObjectData] = {}
-    targets = None
+    if isinstance(targets, (str, Path)):
+        targets = BopDataset(ds.root, split=ds.split, targets_file=str(Path(targets).resolve())).targets()
     if only_estimated:
         rows = {(e.scene_id, e.im_id, e.obj_id) for e in read_results_csv(results_csv)}
-        targets = [t for t in ds.targets() if (t.scene_id, t.im_id, t.obj_id) in rows]
+        targets = [t for t in (targets or ds.targets()) if (t.scene_id, t.im_id, t.obj_id) in rows]
     scores = evaluate(ds, results_csv, metrics=metrics, n_points=n_points, progress=progress, objects=objects,
                       targets=targets)
     write_scores_json(scores, out / "scores.json")
@@ -83,8 +89,11 @@ def add_eval_arguments(parser: argparse.ArgumentParser) -> argparse.ArgumentPars
     parser.add_argument("--n-points", type=int, default=None, help="vertices used by ADD/ADD-S (default: all)")
     parser.add_argument("--no-report", action="store_true", help="skip the HTML report")
     parser.add_argument("--progress", action="store_true")
+    parser.add_argument("--targets", help="BOP targets JSON to score (e.g. the targets.json of `pixie run`: its subset); "
+                        "default: the dataset's. A target without an estimate counts as a miss")
     parser.add_argument("--only-estimated", action="store_true",
-                        help="score only targets with a row in the results (subset runs); default: all targets, misses count")
+                        help="score only targets with a row in the results: targets without one are left out, not "
+                        "counted as misses (not BOP's protocol; prefer --targets)")
     return parser
 
 
@@ -100,6 +109,7 @@ def main_eval(args: argparse.Namespace) -> int:
         report=not args.no_report,
         progress=args.progress,
         only_estimated=args.only_estimated,
+        targets=args.targets,
     )
     return 0
 
@@ -114,7 +124,8 @@ def check_eval_args(args: argparse.Namespace) -> None:
     rows = read_results_csv(args.results)
     if not rows:
         raise DatasetError(f"{args.results} holds no results (empty or header only): nothing to score")
-    targets = ds.targets()
+    targets = ds.targets() if not args.targets else BopDataset(
+        args.dataset, targets_file=str(Path(args.targets).resolve())).targets()
     objs, scenes = {t.obj_id for t in targets}, {t.scene_id for t in targets}
     bad_objs = sorted({r.obj_id for r in rows} - objs)
     if bad_objs:
@@ -135,3 +146,5 @@ def check_eval_args(args: argparse.Namespace) -> None:
     if args.n_points is not None and args.n_points < 1:
         raise UsageError(f"--n-points must be at least 1, got {args.n_points}")
     output_dir(args.out, what="output folder")
+    out = Path(args.out)
+    not_an_input([out, *(out / n for n in EVAL_OUTPUTS)], [args.dataset, args.results, getattr(args, "targets", None)])

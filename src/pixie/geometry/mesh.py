@@ -266,7 +266,9 @@ def _finish(v: np.ndarray, f: np.ndarray, name: str, digest: str, units: str, im
     lo, hi = PLAUSIBLE_DIAMETER_MM
     diag_mm = diag * UNIT_SCALE[units]
     if not lo <= diag_mm <= hi:
-        hint = "metres? try --units m" if diag_mm < lo else "already in mm? try --units mm"
+        fits = [u for u in UNIT_SCALE if u != units and lo <= diag * UNIT_SCALE[u] <= hi]  # only the other units
+        hint = (f"in {' or '.join(fits)}? try " + " or ".join(f"--units {u}" for u in fits) if fits
+                else "no other unit (mm, cm, m) makes it plausible: check the file")
         msg = (f"mesh {name!r} is {diag_mm:.4g} mm across in the declared units ({units}); "
                f"this is implausible for a part ({hint})")
         if implausible == "error":

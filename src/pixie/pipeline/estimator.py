@@ -61,7 +61,7 @@ from pixie.pose.solve import (
     projected_box,
     solve_pnp_ransac,
 )
-from pixie.pose.plausibility import pose_contradictions
+from pixie.pose.plausibility import pose_contradictions, pose_warnings
 from pixie.pipeline.query import QueryCrop, bbox_from_mask, check_bbox, check_query_mask, square_crop
 from pixie.references.set import ReferenceSet, add_features
 from pixie.cues.refine import aligned_correspondences, render_in_crop
@@ -121,6 +121,7 @@ class Query:
     edges: EdgeQuery | None = None  # the shape stage's edge query (config.shape), set by shape_stage
     best_match: float = 0.0  # best matcher score before shape verification (its scale), set by shape_stage
     photo_edges: object = None  # the alignment stage's PhotoEdges (config.align), set by align_stage
+    box_given: np.ndarray | None = None  # the box (x, y, w, h) as given, before clipping (None: from the mask)
 
 
 class PoseEstimator:
@@ -313,7 +314,8 @@ class PoseEstimator:
         use_mask = mask if (mask is not None and self.cfg.query.mask_keypoints) else None
         crops = self.crops(image, box, use_mask)
         feats = [self.matcher.extract(c.image, mask=c.mask) for c in crops]
-        return Query(image, K, box, use_mask, crops, feats, box_source=box_source)
+        return Query(image, K, box, use_mask, crops, feats, box_source=box_source,
+                     box_given=np.asarray(bbox, np.float64).ravel() if box_source == "bbox" else None)
 
     def crops(self, image: np.ndarray, box: np.ndarray, mask: np.ndarray | None) -> list[QueryCrop]:
         """The query crop (``match.in_plane=reference``) or one crop per reference roll angle (``query``)."""
@@ -645,7 +647,8 @@ class PoseEstimator:
         and intrinsics unusual for the image size are listed in ``warnings``.
         """
         timings = {} if timings is None else timings
-        warns = intrinsics_warnings(q.K, q.image.shape[:2]) if q is not None else []
+        warns = [] if q is None else intrinsics_warnings(q.K, q.image.shape[:2]) + pose_warnings(
+            q.K, q.box, q.box_given, q.image.shape[:2], self.refs.mesh.diameter, hyps[0] if hyps else None)
         if not hyps:
             return PoseResult(None, 0.0, 0, True, "no pose: too few 2D-3D matches survived PnP+RANSAC", timings=timings,
                               warnings=warns)

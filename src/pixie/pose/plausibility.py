@@ -67,3 +67,66 @@ def pose_contradictions(T_cam_from_obj: np.ndarray, K: np.ndarray, box_xyxy: np.
         out.append(f"only {100 * covered:.0f} % of the box lies inside the pose's projection "
                    f"(projected box {np.round([*p0, *p1]).astype(int).tolist()}, box {np.round(b).astype(int).tolist()})")
     return out
+
+
+# pose_warnings: a pose that its inputs make doubtful, said in the result's warnings (not failed: it may be right)
+BOX_OUTSIDE_PX = 2.0  # a given box may run this far past the image edge (rounding, BOP's +1) without a word
+WHOLE_IMAGE_FRACTION = 0.9  # a box covering this much of the image is not the object's box
+MIN_DISTANCE_MM = 100.0  # nearer than this the object would fill the box only in macro photography
+MAX_DISTANCE_MM = 20_000.0  # farther than this a part seen in a box of >= 10 px is implausible
+WEAK_FIT = 0.2  # without PnP inliers, less edge agreement (aligned fit or shape-cue edge score) than this is no support
+
+
+def box_warnings(given_xywh, image_shape: tuple[int, int]) -> list[str]:
+    """Why a box (x, y, w, h as given, before clipping) does not look like the object's box in an image of
+    (height, width): it runs past the image edge (x1,y1,x2,y2 given as x,y,w,h?), or it is (nearly) the whole image."""
+    if given_xywh is None:
+        return []
+    x, y, w, h = (float(v) for v in np.asarray(given_xywh, np.float64).ravel()[:4])
+    H, W = image_shape
+    out = []
+    over = {"left": -x, "top": -y, "right": x + w - W, "bottom": y + h - H}
+    past = {k: v for k, v in over.items() if v > BOX_OUTSIDE_PX}
+    if past:
+        where = ", ".join(f"{v:.0f} px past the {k}" for k, v in past.items())
+        hint = (f"; if it is x1,y1,x2,y2, give x,y,w,h = {x:g},{y:g},{w - x:g},{h - y:g}"
+                if w > x and h > y and w <= W and h <= H else "")
+        out.append(f"the box x,y,w,h = {x:g},{y:g},{w:g},{h:g} runs {where} edge of the {W}x{H} image and was "
+                   f"clipped to it{hint}")
+    inside = max(0.0, min(x + w, W) - max(x, 0.0)) * max(0.0, min(y + h, H) - max(y, 0.0))
+    if inside >= WHOLE_IMAGE_FRACTION * W * H:
+        out.append(f"the box covers {100 * inside / (W * H):.0f} % of the image: pixie does not search for the object, "
+                   "it poses what fills the box, so give the object's own box")
+    return out
+
+
+def pose_warnings(K: np.ndarray, box_xyxy: np.ndarray, given_xywh, image_shape: tuple[int, int], diameter: float,
+                  best=None) -> list[str]:
+    """Why a pose may be wrong although nothing contradicts it outright: one sentence each, empty when none.
+
+    * the box (:func:`box_warnings`);
+    * the object's size against its distance: a ``diameter`` mm object fills the box only nearer than
+      ``MIN_DISTANCE_MM`` (a mesh in cm read as mm, or a box far larger than the object), or the pose puts it
+      beyond ``MAX_DISTANCE_MM``;
+    * ``best`` (the chosen :class:`~pixie.pose.results.Hypothesis`) has no PnP inliers and little edge agreement.
+    """
+    out = box_warnings(given_xywh, image_shape)
+    b = np.asarray(box_xyxy, np.float64)
+    side = max(b[2] - b[0], b[3] - b[1], 1.0)
+    f = float(np.mean([K[0, 0], K[1, 1]]))
+    z_far = f * diameter / side  # the farthest the object can be and still span the box
+    if z_far < MIN_DISTANCE_MM:
+        out.append(f"a {diameter:.1f} mm object spans the {b[2] - b[0]:.0f}x{b[3] - b[1]:.0f} px box only within "
+                   f"{z_far:.0f} mm of the camera (f {f:.0f} px): is the mesh in the right units (--units) and the "
+                   "box the object's?")
+    if best is None:
+        return out
+    T = np.asarray(best.T_cam_from_obj, np.float64)
+    if np.all(np.isfinite(T)) and T[2, 3] > MAX_DISTANCE_MM:
+        out.append(f"the pose puts the {diameter:.1f} mm object {T[2, 3] / 1000:.1f} m from the camera: is the mesh "
+                   "in the right units (--units)?")
+    edge = best.terms.get("fit", best.edge) if isinstance(getattr(best, "terms", None), dict) else best.edge
+    if best.n_inliers == 0 and not (np.isfinite(edge) and edge >= WEAK_FIT):
+        how = f"only {100 * edge:.0f} % edge agreement" if np.isfinite(edge) else "no edge check (shape, align off)"
+        out.append(f"the pose has no PnP inliers and {how}: little supports it")
+    return out

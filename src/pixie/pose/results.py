@@ -99,9 +99,12 @@ class PoseResult:
     preset: str | None = None
     config_digest: str | None = None
     device: str | None = None
-    warnings: list[str] = field(default_factory=list)  # unusual but accepted inputs (intrinsics for the image size)
+    # unusual but accepted inputs (intrinsics for the image size, a box leaving the image) and poses that their
+    # inputs make doubtful (pixie.pose.plausibility.pose_warnings); the app adds the console's warnings (EXIF ...)
+    warnings: list[str] = field(default_factory=list)
     candidates: list[Hypothesis] = field(default_factory=list, repr=False)  # every ranked hypothesis (studies; not saved)
     confidence_calibrated: bool = False  # confidence is the calibrated probability (config.align.confidence)
+    settings: dict = field(default_factory=dict)  # what ran where the reference set decides (pixie.app.notes)
 
     def to_dict(self) -> dict:
         """Everything as JSON-able data (poses as nested lists, mm)."""
@@ -126,6 +129,7 @@ class PoseResult:
             "preset": self.preset, "config_digest": self.config_digest, "device": self.device,
             "timings": self.timings,
             "warnings": self.warnings,
+            "settings": self.settings,
             "hypotheses": [
                 {"T_cam_from_obj": h.T_cam_from_obj.tolist(), "score": h.score, "confidence": h.confidence,
                  "n_inliers": h.n_inliers, "view": h.view, "roll": h.roll, "source": h.source} for h in self.hypotheses

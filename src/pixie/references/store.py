@@ -24,8 +24,8 @@ import numpy as np
 from pixie._version import __version__
 from pixie.config import RefsConfig, ShapeConfig
 from pixie.errors import OutputError, PixieError, ReferenceSetError
-from pixie.geometry.mesh import Mesh, from_arrays
-from pixie.paths import output_file, write_atomic
+from pixie.geometry.mesh import Mesh, from_arrays, load_mesh
+from pixie.paths import output_file, remove_stale_temps, write_atomic
 from pixie.references.set import ReferenceSet, _Decoded, _build_templates
 from pixie.references.templates import ContourTemplates
 
@@ -78,9 +78,10 @@ def check_output_path(path: str | Path, force: bool = True) -> Path:
         raise ReferenceSetError(str(exc)) from exc
 
 
-def save_reference_set(refs: ReferenceSet, path: str | Path) -> Path:
-    """Write ``refs`` to ``path`` (.npz) atomically: a killed write leaves no partial file."""
-    path = check_output_path(path)
+def save_reference_set(refs: ReferenceSet, path: str | Path, force: bool = True) -> Path:
+    """Write ``refs`` to ``path`` (.npz) atomically: a killed write leaves no partial file. Without ``force`` an
+    existing file is refused, also one another process wrote meanwhile (:func:`pixie.paths.write_atomic`)."""
+    path = check_output_path(path, force=force)
     meta = {
         "format_version": FORMAT_VERSION,
         "pixie_version": __version__,
@@ -110,14 +111,23 @@ def save_reference_set(refs: ReferenceSet, path: str | Path) -> Path:
         arrays["meta"] = np.frombuffer(json.dumps(meta).encode(), np.uint8)
         arrays.update({f"tpl/{k}": np.asarray(v) for k, v in refs.templates.items()})
     # atomic (a killed write leaves no partial file) and 0644; a file object, else numpy appends '.npz'
-    return write_atomic(path, lambda fh: np.savez_compressed(fh, **arrays))
+    try:
+        return write_atomic(path, lambda fh: np.savez_compressed(fh, **arrays), force=force)
+    except OutputError as exc:
+        raise ReferenceSetError(str(exc)) from exc
 
 
-def load_reference_set(path: str | Path, mesh: Mesh | None = None) -> ReferenceSet:
-    """Read a reference set; with ``mesh`` given, refuse a set built from another mesh file."""
+def load_reference_set(path: str | Path, mesh: Mesh | str | Path | None = None) -> ReferenceSet:
+    """Read a reference set; with ``mesh`` given (a :class:`Mesh` or a mesh file), refuse a set built from another
+    mesh file. Array shapes are checked against each other (:class:`ReferenceSetError` naming the set and the field)."""
     if not isinstance(path, (str, os.PathLike)):
         raise ReferenceSetError(f"reference set path must be a str or Path, got {type(path).__name__}")
+    if isinstance(mesh, (str, os.PathLike)):
+        mesh = load_mesh(mesh)
+    elif mesh is not None and not isinstance(mesh, Mesh):
+        raise ReferenceSetError(f"mesh must be a Mesh or a mesh file path, got {type(mesh).__name__}")
     path = Path(path)
+    remove_stale_temps(path.parent)  # a killed save's temporary file
     if not path.is_file():
         raise ReferenceSetError(f"reference set not found: {path} (build it with `pixie refs build MESH -o {path}`)")
     try:
@@ -145,6 +155,7 @@ def load_reference_set(path: str | Path, mesh: Mesh | None = None) -> ReferenceS
         if "mesh_hull" in data:  # sets written before it was stored compute it on first use
             stored_mesh._hull_vertices = data["mesh_hull"]
         cfg = RefsConfig(**meta["config"])
+        _check_shapes(path, data, cfg)
         feats: dict[str, dict[str, np.ndarray]] = {}
         for k, v in data.items():
             if k.startswith("feat/"):
@@ -161,8 +172,36 @@ def load_reference_set(path: str | Path, mesh: Mesh | None = None) -> ReferenceS
         )
     except (KeyError, TypeError) as exc:
         raise ReferenceSetError(f"{path} is missing data ({exc}): rebuild it") from exc
+    except ReferenceSetError:
+        raise
     except PixieError as exc:  # an invalid stored config or mesh
         raise ReferenceSetError(f"{path} holds invalid data ({exc}): rebuild it") from exc
+
+
+def _check_shapes(path: Path, data: dict, cfg: RefsConfig) -> None:
+    """Every per-view array agrees with ``poses`` (V views x R rolls) and the image size; raise naming the field."""
+    def bad(field: str, shape, want: str) -> ReferenceSetError:
+        return ReferenceSetError(f"reference set {path} is inconsistent: {field} has shape {tuple(shape)}, expected "
+                                 f"{want}: rebuild it")
+
+    poses = data["poses"]
+    if poses.ndim != 4 or poses.shape[2:] != (4, 4) or 0 in poses.shape[:2]:
+        raise bad("poses", poses.shape, "(views, rolls, 4, 4)")
+    V, R = poses.shape[:2]
+    S = data["depth_q"].shape[1] if data["depth_q"].ndim == 3 else -1
+    want = {"Ks": (V, R, 3, 3), "K_start": (3, 3), "canonical": (V,), "depth_q": (V, S, S), "depth_lo": (V,),
+            "depth_step": (V,), "normals_q": (V, S, S, 3)}
+    for k, shape in want.items():
+        if tuple(data[k].shape) != shape or S <= 0:
+            raise bad(k, data[k].shape, str(shape).replace("-1", "S"))
+    for k, v in data.items():
+        if k.startswith("enc/") and not (v.ndim >= 3 and v.shape[0] == V
+                                         and (v.shape[1:3] == (S, S) or v.shape[1:4] == (R, S, S))):
+            raise bad(k, v.shape, f"({V}, {S}, {S}[, 3]) or ({V}, {R}, {S}, {S}[, 3])")
+        if k.startswith("feat/") and k.endswith("/feat_image_sizes") and len(v.reshape(-1, 2)) not in (V, V * R):
+            raise bad(k, v.shape, f"one entry per view ({V}) or per view and roll ({V * R})")
+    if cfg.rotations != R:
+        raise bad("poses", poses.shape, f"{cfg.rotations} rolls per view (its config's refs.rotations)")
 
 
 def _templates_from(data: dict) -> dict[str, np.ndarray] | None:
