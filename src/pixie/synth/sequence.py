@@ -12,7 +12,7 @@ import cv2
 import numpy as np
 
 from pixie.geometry.camera import make_T
-from pixie.geometry.mesh import Mesh
+from pixie.geometry.mesh import Mesh, from_arrays
 from pixie.geometry.render import Renderer
 from pixie.synth.photo import LightRig, Material, random_background, render_rgb
 
@@ -43,8 +43,6 @@ def smooth_sequence(mesh: Mesh, K: np.ndarray, height: int, width: int, n_frames
     cluttered background, one material and one light rig (fixed over the sequence, as for a real camera).
     ``distractors`` static boxes sit in the scene (LM-O-like clutter, occluding the object at times)."""
     import trimesh
-
-    from pixie.geometry.mesh import from_arrays
 
     rng = np.random.default_rng(seed)
     ren = Renderer(mesh)
