@@ -41,7 +41,6 @@ def test_render_writes_photo_mask_box_and_ground_truth_and_estimate_scores_again
     refs, cfg_e, matcher = query_e2e
     res = PoseEstimator(refs, cfg_e, matcher=matcher).estimate(img, np.array(scene["K"]), bbox=scene["bbox_xywh"])
     e = pose_error(res.T_cam_from_obj, T_gt, refs.mesh.vertices)
-    print("render -> estimate", e)
     assert e["rot_deg"] < 2.5 and e["depth_pct"] < 2.5, e
     # estimate --gt prints the errors and writes them into the result JSON
     argv = ["estimate", "--refs", str(refs_path), "--image", str(out / "photo.png"), "--K", scene["K_arg"], "--bbox",
