@@ -43,11 +43,13 @@ def test_public_names_at_the_root():
 
 
 @pytest.mark.slow
-def test_estimate_pose_from_files(part_files, tmp_path):
+def test_estimate_pose_from_files(part_files, tmp_path, capsys):
     root, mesh, K, T_true, box = part_files
     K_text = f"{K[0, 0]},{K[1, 1]},{K[0, 2]},{K[1, 2]}"
     res = pixie.estimate_pose(root / "part.stl", root / "photo.png", K_text, bbox=box, config=small_config(),
                               cache_dir=tmp_path / "refs")
+    err = capsys.readouterr().err  # the first call says what takes its time: the units and the one-time build
+    assert "read in metres" in err and "building the references of part once" in err
     assert res.T_cam_from_obj is not None and not res.failed
     # read in mm from a metre file: the translation is hundreds of mm, as in the photo
     assert abs(res.T_cam_from_obj[2, 3] - T_true[2, 3]) < 0.2 * T_true[2, 3]
@@ -58,8 +60,19 @@ def test_estimate_pose_from_files(part_files, tmp_path):
                                 config=small_config(), cache_dir=tmp_path / "refs")
     assert cached[0].stat().st_mtime_ns == stamp  # built once
     assert np.array_equal(again.T_cam_from_obj, res.T_cam_from_obj)
+    assert "building" not in capsys.readouterr().err
+    quiet = pixie.estimate_pose(root / "part.stl", root / "photo.png", K_text, bbox=box, config=small_config(),
+                                cache_dir=tmp_path / "refs2", quiet=True)
+    assert capsys.readouterr().err == "" and np.allclose(quiet.T_cam_from_obj, res.T_cam_from_obj, atol=1e-6)
     d = res.to_dict()
     assert d["units"] == "mm" and d["K"] == np.asarray(K).tolist() and d["mesh_sha256"]
+    assert d["mesh"]["file_units"] == "m" and d["mesh"]["scale_to_mm"] == 1000.0  # read in metres, scaled x 1000
+    assert d["source"] == res.hypotheses[0].source and "view" in d["view_note"]
+    # from a prior: the estimate refined again, no box needed, no search
+    prior = pixie.estimate_pose(root / "part.stl", root / "photo.png", K_text, config=small_config(),
+                                cache_dir=tmp_path / "refs", init_pose=res.T_cam_from_obj, quiet=True)
+    assert prior.hypotheses[0].source == "prior" and "match" not in prior.timings
+    assert np.linalg.norm(prior.T_cam_from_obj[:3, 3] - res.T_cam_from_obj[:3, 3]) < 0.02 * T_true[2, 3]
     # the alignment is on: the confidence is the calibrated probability (the ratio stays per hypothesis)
     assert res.confidence_calibrated and 0.0 <= d["confidence"] <= 1.0
     assert "probability" in d["confidence_note"].lower()

@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import os
+import sys
 import warnings
 from collections import OrderedDict
 from pathlib import Path
@@ -13,13 +14,15 @@ from pixie.geometry.camera import parse_K
 from pixie.config import DEFAULT_PRESET, PixieConfig
 from pixie.errors import ImageError
 from pixie.pipeline.estimator import PoseEstimator
-from pixie.geometry.mesh import Mesh, load_mesh
+from pixie.geometry.mesh import Mesh, load_mesh, units_note
 from pixie.pipeline.query import load_image
 from pixie.pose.results import NO_BOX_MESSAGE
 from pixie.references.set import ReferenceSet
 from pixie.references.store import ensure_templates, load_reference_set
 from pixie.app.notes import annotate, collect_warnings
-from pixie.app.runner import cached_reference_set
+from pixie.app.console import tqdm_progress
+from pixie.app.runner import cached_reference_set, reference_cache_path
+from pixie.app.track import read_pose_file
 from pixie.weights import cache_dir
 
 __all__ = ["estimate_pose"]
@@ -34,8 +37,10 @@ def _refs_cache() -> Path:
     return cache_dir().parent / "refs"
 
 
-def _reference_set(obj: Any, cfg: PixieConfig, units: str, cache: Path | None):
-    """A ReferenceSet from a ReferenceSet, a Mesh, a mesh file (built once, cached) or a reference-set file."""
+def _reference_set(obj: Any, cfg: PixieConfig, units: str, cache: Path | None, quiet: bool = False):
+    """A ReferenceSet from a ReferenceSet, a Mesh, a mesh file (built once, cached) or a reference-set file.
+
+    Unless ``quiet``, the mesh's units and a first build (tens of seconds) are announced on stderr, with a bar."""
 
     if isinstance(obj, ReferenceSet):
         return obj, ("refs", id(obj))
@@ -48,13 +53,22 @@ def _reference_set(obj: Any, cfg: PixieConfig, units: str, cache: Path | None):
             ensure_templates(refs, cfg.shape)  # an older set: templates built once and saved into it
             return refs, ("file", str(path.resolve()), path.stat().st_mtime_ns)
         mesh = load_mesh(path, units=units)
-    refs = cached_reference_set(mesh, cfg, cache or _refs_cache())
+        if not quiet:
+            print(units_note(mesh), file=sys.stderr, flush=True)
+    where = reference_cache_path(mesh, cfg, cache or _refs_cache())
+    progress = None
+    if not quiet and not where.is_file():
+        print(f"pixie: building the references of {mesh.name} once (preset {cfg.preset}; tens of seconds) -> {where}",
+              file=sys.stderr, flush=True)
+        progress = tqdm_progress("view")
+    refs = cached_reference_set(mesh, cfg, cache or _refs_cache(), progress=progress)
     return refs, ("mesh", mesh.source_hash, mesh.file_units)
 
 
 def estimate_pose(mesh_or_refs: Any, image: Any, K: Any, bbox: Sequence[float] | None = None,
                   mask: Any = None, *, preset: str = DEFAULT_PRESET, config: PixieConfig | None = None,
-                  units: str = "auto", device: str | None = None, cache_dir: str | Path | None = None):
+                  units: str = "auto", device: str | None = None, cache_dir: str | Path | None = None,
+                  init_pose: Any = None, quiet: bool = False):
     """Estimate ``T_cam_from_obj`` of an object in one photo, in one call.
 
     >>> import pixie
@@ -80,6 +94,11 @@ def estimate_pose(mesh_or_refs: Any, image: Any, K: Any, bbox: Sequence[float] |
         Units of a mesh file (``auto`` by default: metres if under 2 units across, else mm).
     device
         ``auto``, ``cpu`` or ``cuda`` for the matcher (default: the config's).
+    init_pose
+        A starting pose (4x4, mm, OpenCV camera; or a pose JSON file): refined by edge alignment instead of
+        searching all views (:meth:`~pixie.pipeline.estimator.PoseEstimator.estimate_from_prior`); box optional.
+    quiet
+        No lines on stderr (the mesh's units, a first reference build and its progress bar).
 
     Returns
     -------
@@ -93,8 +112,10 @@ def estimate_pose(mesh_or_refs: Any, image: Any, K: Any, bbox: Sequence[float] |
         Missing inputs, no box or mask, unreadable files, bad intrinsics.
     """
 
-    if bbox is None and mask is None:
+    if bbox is None and mask is None and init_pose is None:
         raise ImageError(NO_BOX_MESSAGE)
+    if isinstance(init_pose, (str, os.PathLike)):
+        init_pose = read_pose_file(init_pose)
     cfg = config if config is not None else PixieConfig.from_preset(preset)
     if device is not None:
         cfg.match.device = device
@@ -103,7 +124,7 @@ def estimate_pose(mesh_or_refs: Any, image: Any, K: Any, bbox: Sequence[float] |
             image = load_image(image)
         if mask is not None and isinstance(mask, (str, os.PathLike)):
             mask = load_image(mask)[..., 0] > 127
-        refs, refs_id = _reference_set(mesh_or_refs, cfg, units, Path(cache_dir) if cache_dir else None)
+        refs, refs_id = _reference_set(mesh_or_refs, cfg, units, Path(cache_dir) if cache_dir else None, quiet)
         key = (refs_id, cfg.digest())
         est = _ESTIMATORS.get(key)
         if est is None:
@@ -114,7 +135,10 @@ def estimate_pose(mesh_or_refs: Any, image: Any, K: Any, bbox: Sequence[float] |
                 _ESTIMATORS.popitem(last=False)
         else:
             _ESTIMATORS.move_to_end(key)
-        res = est.estimate(image, parse_K(K), bbox=bbox, mask=mask)
+        if init_pose is not None:
+            res = est.estimate_from_prior(image, parse_K(K), init_pose, bbox=bbox, mask=mask)
+        else:
+            res = est.estimate(image, parse_K(K), bbox=bbox, mask=mask)
     for message in notes.items:  # the caller's own warning handling sees them as before
         warnings.warn(message, UserWarning, stacklevel=2)
     return annotate(res, est, cfg, notes)

@@ -1,4 +1,4 @@
-"""Many photos of one object: ``pixie estimate --batch FOLDER|MANIFEST -o OUT``.
+"""Many photos, of one object or several: ``pixie estimate --batch FOLDER|MANIFEST -o OUT``.
 
 Inputs are a folder of images (one ``--K`` for all; one ``--bbox`` for all or a folder of masks with the
 images' names) or a manifest, CSV or JSON, one row per image::
@@ -12,7 +12,11 @@ an image (white = object); every row needs a bbox or a mask. Optional columns ``
 ``obj_id`` go to the BOP CSV (defaults 0, the row number, 1). Paths are relative to the manifest.
 JSON manifests are a list of objects with the same keys (``K`` and ``bbox`` may be lists).
 
-One estimator serves every image (reference set loaded or built once). Outputs in ``OUT``:
+**Several objects per photo:** a row per (photo, object, box or mask), with the object named per row by a ``refs``
+(a reference set) or ``mesh`` (a CAD file: its set is built once into ``OUT/refs``) column; rows without one use
+``--refs`` / ``--mesh``. Rows of one photo share one overlay with every object drawn (``overlays/*_all.png``).
+
+One estimator per reference set serves its images (loaded or built once). Outputs in ``OUT``:
 
 * ``results.csv`` -- BOP'19 results (scene_id, im_id, obj_id, score, R, t, time); failed rows keep their
   best guess with score 0, rows without any pose are left out;
@@ -68,6 +72,8 @@ class BatchItem:
     scene_id: int = 0
     im_id: int = 0
     obj_id: int = 1
+    refs: Path | None = None  # this row's reference set (several objects per photo); None: the batch's
+    mesh: Path | None = None  # or its CAD file (the CLI builds the set once and fills ``refs``)
 
     @property
     def name(self) -> str:
@@ -119,7 +125,10 @@ def read_manifest(path: str | Path) -> list[BatchItem]:
             raise ConfigError(f"{where}: no bbox and no mask; {NO_BOX_HELP}")
         image = base / str(row["image"])
         mask = base / str(row["mask"]) if has_mask else None
-        for p in (image, mask):
+        obj = {k: base / str(row[k]) for k in ("refs", "mesh") if row.get(k) not in (None, "")}
+        if len(obj) == 2:
+            raise ConfigError(f"{where}: give the object as 'refs' or as 'mesh', not both")
+        for p in (image, mask, *obj.values()):
             if p is not None and not p.is_file():
                 missing.append(f"{where}: {p}")
         ids = {}
@@ -129,7 +138,7 @@ def read_manifest(path: str | Path) -> list[BatchItem]:
             except (TypeError, ValueError) as exc:
                 raise ConfigError(f"{where}: {key} must be an integer, got {row[key]!r}") from exc
         box = parse_box(row["bbox"], "bbox", where, ConfigError) if has_box else None
-        items.append(BatchItem(image, parse_K(row["k"], "K", where, ConfigError), box, mask, **ids))
+        items.append(BatchItem(image, parse_K(row["k"], "K", where, ConfigError), box, mask, **ids, **obj))
     if missing:
         raise ImageError(f"{len(missing)} file(s) of the manifest do not exist:\n  " + "\n  ".join(missing[:20]))
     return items
@@ -183,15 +192,22 @@ def item_key(item: BatchItem, image_sha: str, mask_sha: str | None, config_diges
 
 # ----------------------------------------------------------------------------------------- workers
 def _setup(args: dict) -> dict:
-    """Worker state: the reference set (from file), one estimator and one renderer."""
+    """Worker state: the configuration; an estimator and a renderer per reference set, made on first use."""
 
     cfg = PixieConfig.from_dict(args["config"])
     cfg.preset = args.get("preset")
-    refs = load_reference_set(args["refs"])
-    with collect_warnings() as notes:  # CUDA asked for but absent ...: into every result's warnings
-        est = PoseEstimator(refs, cfg)
-    return {"est": est, "renderer": Renderer(refs.mesh), "overlays": args["overlays"], "cfg": cfg,
-            "mesh_sha256": args.get("mesh_sha256"), "notes": notes.items}
+    return {"est": {}, "renderer": {}, "overlays": args["overlays"], "cfg": cfg, "notes": []}
+
+
+def _estimator(state: dict, refs_path: str) -> PoseEstimator:
+    """The worker's estimator of the reference set at ``refs_path`` (loaded once per worker)."""
+    if refs_path not in state["est"]:
+        refs = load_reference_set(refs_path)
+        with collect_warnings() as notes:  # CUDA asked for but absent ...: into every result's warnings
+            state["est"][refs_path] = PoseEstimator(refs, state["cfg"])
+        state["renderer"][refs_path] = Renderer(refs.mesh)
+        state["notes"] = list(dict.fromkeys(state["notes"] + notes.items))
+    return state["est"][refs_path]
 
 
 def _process(state: dict, job: dict) -> dict:
@@ -199,24 +215,26 @@ def _process(state: dict, job: dict) -> dict:
 
     t0 = time.perf_counter()
     rec = {k: job[k] for k in ("key", "row", "name", "image", "image_sha256", "K", "bbox", "mask",
-                               "scene_id", "im_id", "obj_id")}
-    notes = Notes().extend(state.get("notes"))
+                               "scene_id", "im_id", "obj_id", "refs")}
     try:
+        est = _estimator(state, job["refs"])
+        notes = Notes().extend(state.get("notes"))
         with collect_warnings() as seen:  # EXIF orientation, unusual K ...
             image = load_image(job["image"])
             mask = load_mask(job["mask"]) if job["mask"] else None
             K = np.asarray(job["K"], np.float64)
-            res = state["est"].estimate(image, K, bbox=job["bbox"], mask=mask)
-        rec["result"] = annotate(res, state["est"], state["cfg"], notes.extend(seen.items)).to_dict()
+            res = est.estimate(image, K, bbox=job["bbox"], mask=mask)
+        rec["result"] = annotate(res, est, state["cfg"], notes.extend(seen.items)).to_dict()
         if state["overlays"]:
 
             bbox = job["bbox"] if job["bbox"] is not None else bbox_from_mask(mask)
             box = check_bbox(bbox, image.shape[:2])
             label = f"{'FAILED ' if res.failed else ''}conf {res.confidence:.2f}"
-            rec["overlay_png"] = encode_png(overlay_result(image, state["renderer"], res.T_cam_from_obj, K, box, label))
+            rec["overlay_png"] = encode_png(overlay_result(image, state["renderer"][job["refs"]], res.T_cam_from_obj,
+                                                           K, box, label))
     except PixieError as exc:
         rec["result"] = {"T_cam_from_obj": None, "failed": True, "message": f"{type(exc).__name__}: {exc}",
-                         "score": 0.0, "confidence": 0.0, "warnings": notes.items}
+                         "score": 0.0, "confidence": 0.0, "warnings": list(state.get("notes") or [])}
     rec["time_s"] = time.perf_counter() - t0
     return rec
 
@@ -235,24 +253,30 @@ class BatchSummary:
     workers: int = 1
 
 
-def run_batch(items: list[BatchItem], out_dir: str | Path, config: PixieConfig, refs_path: str | Path,
+def run_batch(items: list[BatchItem], out_dir: str | Path, config: PixieConfig, refs_path: str | Path | None,
               *, threads: int = 1, use_ray: bool = False, address: str | None = None, workers: int | None = None,
               overlays: bool = True, echo: Callable[[str], None] = print, show_progress: bool = True,
               max_items: int | None = None) -> BatchSummary:
     """Estimate every item with one reference set; resumable; writes the outputs listed in the module doc.
 
-    ``max_items`` stops after that many newly run items (the outputs then cover what is done so far).
+    ``max_items`` stops after that many newly run items (the outputs then cover what is done so far). An item with
+    its own ``refs`` uses that set; the others use ``refs_path`` (None only when every item names its own).
     """
 
     t_start = time.perf_counter()
     out = Path(out_dir)
     (out / "overlays").mkdir(parents=True, exist_ok=True)
-    refs_path = Path(refs_path)
-    refs = load_reference_set(refs_path)  # fail early on a bad set; workers load it again from the file
-    ensure_templates(refs, config.shape)  # an older set: templates built once here and saved, not in every worker
-    mesh_sha = refs.mesh.source_hash
-    del refs
-    refs_sha = sha256_file(refs_path)
+    refs_of = {}  # every reference set used -> (its sha256, its mesh's sha256)
+    for it in items:
+        p = it.refs or refs_path
+        if p is None:
+            raise UsageError(f"{it.name}: no object: give --refs / --mesh, or a refs or mesh column in the manifest")
+        p = Path(p).resolve()
+        if p not in refs_of:
+            refs = load_reference_set(p)  # fail early on a bad set; workers load it again from the file
+            ensure_templates(refs, config.shape)  # an older set: templates built once here and saved
+            refs_of[p] = (sha256_file(p), refs.mesh.source_hash)
+            del refs
     digest = config.digest()
     if max_items is not None and (isinstance(max_items, bool) or not isinstance(max_items, int) or max_items < 1):
         raise UsageError(f"--max-items must be a whole number of at least 1, got {max_items!r}")
@@ -262,7 +286,9 @@ def run_batch(items: list[BatchItem], out_dir: str | Path, config: PixieConfig, 
     for n, it in enumerate(items):
         img_sha = sha256_file(it.image) if it.image.is_file() else "missing"
         mask_sha = sha256_file(it.mask) if it.mask is not None and it.mask.is_file() else None
-        jobs.append({"key": item_key(it, img_sha, mask_sha, digest, refs_sha), "row": n, "name": it.name,
+        rp = Path(it.refs or refs_path).resolve()
+        jobs.append({"key": item_key(it, img_sha, mask_sha, digest, refs_of[rp][0]), "row": n, "name": it.name,
+                     "refs": str(rp),
                      "image": str(it.image), "image_sha256": img_sha, "K": it.K.tolist(),
                      "bbox": None if it.bbox is None else it.bbox.tolist(),
                      "mask": None if it.mask is None else str(it.mask),
@@ -289,14 +315,14 @@ def run_batch(items: list[BatchItem], out_dir: str | Path, config: PixieConfig, 
             name = f"overlays/{rec['row']:05d}_{Path(rec['name']).stem}.png"
             write_atomic(out / name, png)
             rec["overlay"] = name
-        rec.update(config_digest=digest, preset=config.preset, refs=str(refs_path), refs_sha256=refs_sha,
-                   mesh_sha256=mesh_sha)
+        rp = Path(rec["refs"])
+        rec.update(config_digest=digest, preset=config.preset, refs_sha256=refs_of[rp][0], mesh_sha256=refs_of[rp][1])
         journal.append(rec)  # one flushed line; a line cut by a kill is reported and its image runs again
         if bar is not None:
             bar.update(1)
 
     spec = WorkerSpec(_setup, _process, {"config": config.to_dict(), "preset": config.preset,
-                                         "refs": str(refs_path.resolve()), "overlays": overlays}, threads)
+                                         "overlays": overlays}, threads)
     try:
         if use_ray:
             n_workers = ray_map(spec, todo, on_result, workers=workers, address=address)
@@ -312,12 +338,45 @@ def run_batch(items: list[BatchItem], out_dir: str | Path, config: PixieConfig, 
         if res.get("T_cam_from_obj") is not None:
             ests.append(PoseEstimate(r["scene_id"], r["im_id"], r["obj_id"], 0.0 if res["failed"] else float(res["score"]),
                                      np.asarray(res["T_cam_from_obj"]), float(r["time_s"])))
+    if overlays:
+        _photo_overlays(records, out)
     write_results_csv(out / "results.csv", ests)  # atomic (pixie.paths.write_atomic)
     write_atomic(out / "results.jsonl", "".join(json.dumps(r) + "\n" for r in records))
     write_atomic(out / "index.html", _html(records, len(jobs), config))
     n_failed = sum(1 for r in records if r["result"].get("failed"))
     return BatchSummary(len(jobs), n_cached, len(todo), n_failed, time.perf_counter() - t_start,
                         out / "results.csv", out / "results.jsonl", out / "index.html", n_workers)
+
+
+def _photo_overlays(records: list[dict], out: Path) -> None:
+    """One overlay per photo with several objects: every object's estimate drawn into it (``*_all.png``); each
+    record of that photo then points to it as ``photo_overlay``."""
+    by_image: dict[str, list[dict]] = {}
+    for r in records:
+        by_image.setdefault(r["image"], []).append(r)
+    renderers: dict[str, Renderer] = {}
+    for path, group in by_image.items():
+        if len(group) < 2:
+            continue
+        try:
+            img = load_image(path)
+        except PixieError:
+            continue
+        for r in group:
+            res = r["result"]
+            if r["refs"] not in renderers:
+                renderers[r["refs"]] = Renderer(load_reference_set(r["refs"]).mesh)
+            T = None if res.get("T_cam_from_obj") is None else np.asarray(res["T_cam_from_obj"])
+            box = None
+            if r["bbox"] is not None:
+                x, y, w, h = r["bbox"]
+                box = np.array([x, y, x + w, y + h], np.float64)
+            label = f"{Path(r['refs']).stem}: {'FAILED' if res.get('failed') else 'ok'}"
+            img = overlay_result(img, renderers[r["refs"]], T, np.asarray(r["K"]), box, label, shade_alpha=0.2)
+        name = f"overlays/{group[0]['row']:05d}_{Path(path).stem}_all.png"
+        write_atomic(out / name, encode_png(img))
+        for r in group:
+            r["photo_overlay"] = name
 
 
 def _html(records: list[dict], n_total: int, config: PixieConfig) -> str:
@@ -327,8 +386,9 @@ def _html(records: list[dict], n_total: int, config: PixieConfig) -> str:
         T = res.get("T_cam_from_obj")
         t = "" if T is None else ", ".join(f"{v:.1f}" for v in np.asarray(T)[:3, 3])
         status = "FAILED: " + html.escape(str(res.get("message", ""))) if res.get("failed") else "ok"
-        img = (f'<a href="{html.escape(r["overlay"])}"><img src="{html.escape(r["overlay"])}" width="320"></a>'
-               if r.get("overlay") else "")
+        shown = r.get("photo_overlay") or r.get("overlay")  # every object of the photo, when it has several
+        img = (f'<a href="{html.escape(shown)}"><img src="{html.escape(shown)}" width="480"></a>'
+               if shown else "")
         rows.append(f"<tr><td>{r['row']}</td><td>{html.escape(r['name'])}</td><td>{img}</td><td>{status}</td>"
                     f"<td>{res.get('score', 0):.2f}</td><td>{res.get('confidence', 0):.2f}</td><td>{t}</td>"
                     f"<td>{r['time_s']:.1f}</td></tr>")

@@ -274,10 +274,28 @@ def _estimate_batch(args: argparse.Namespace) -> int:
         items = read_manifest(src)
     out = output_dir(args.output, what="output folder")
     not_an_input([out, *(out / n for n in BATCH_OUTPUTS)], [src, args.refs, args.mesh, args.config,
-                                                             *(i.image for i in items), *(i.mask for i in items)])
-    refs, refs_path = _refs_for_estimate(args, cfg, out / "refs")
-    _matcher_for(refs, cfg, args)
-    del refs
+                                                             *(i.image for i in items), *(i.mask for i in items),
+                                                             *(i.refs for i in items), *(i.mesh for i in items)])
+    own = [it for it in items if it.refs is not None or it.mesh is not None]  # rows naming their own object
+    refs_path = None
+    if len(own) < len(items) or args.refs or args.mesh:
+        refs, refs_path = _refs_for_estimate(args, cfg, out / "refs")
+        _matcher_for(refs, cfg, args)
+        del refs
+    built: dict[Path, Path] = {}
+    for it in own:
+        if it.mesh is not None:  # a row's CAD file: its set built once into OUT/refs (the --mesh cache)
+            if it.mesh not in built:
+                mesh = _load_mesh(str(it.mesh), args.units)
+                path = reference_cache_path(mesh, cfg, out / "refs")
+                if not path.is_file():
+                    print(f"building references of {mesh.name} (preset {cfg.preset}) -> {path}")
+                cached_reference_set(mesh, cfg, out / "refs", progress=tqdm_progress("view"))
+                built[it.mesh] = path
+            it.refs = built[it.mesh]
+    if own:
+        print(f"{len(items)} rows, {len({it.refs or refs_path for it in items})} objects "
+              f"({len({it.image for it in items})} photos)")
     s = run_batch(items, out, cfg, refs_path, threads=args.threads or 1, use_ray=args.ray, address=args.address,
                   workers=args.workers, overlays=not args.no_overlays, max_items=args.max_items)
     print(f"{s.n_items} images: {s.n_cached} cached, {s.n_run} run ({s.n_failed} failed in all) in {s.seconds:.0f} s"
@@ -444,7 +462,8 @@ def build_parser() -> argparse.ArgumentParser:
     b.add_argument("--rotations", type=int, help="in-plane rolls per view (default 8)")
     b.add_argument("--size", type=int, help="reference image side in px (default 256)")
     _add_units_arg(b)
-    b.add_argument("--encodings", help="comma-separated encodings (default shade3_edges,depth,normal)")
+    b.add_argument("--encodings", help="comma-separated encodings (default: the preset's refs.encodings; default "
+                   "and fast: shade3_edges, paper: shade3_edges,depth,normal)")
     b.add_argument("--matcher", help="features to store (default: config match.matcher; 'none' for none)")
     b.add_argument("--workers", type=int, default=1, help="render processes (1 thread each)")
     _add_threads_arg(b)

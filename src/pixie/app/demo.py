@@ -28,7 +28,7 @@ from pixie.eval.pose_error import add
 from pixie.geometry.mesh import Mesh, from_arrays, load_mesh
 from pixie.pipeline.query import bbox_from_mask
 from pixie.geometry.render import Renderer
-from pixie.app.runner import cached_reference_set
+from pixie.app.runner import cached_reference_set, reference_cache_path
 from pixie.paths import not_an_input
 from pixie.viz import contact_sheet, overlay_pose, save_png
 from pixie.threads import default_threads, set_threads
@@ -83,7 +83,7 @@ def generated_photo(mesh: Mesh, seed: int = 0) -> tuple[np.ndarray, np.ndarray, 
 
 
 def main(argv: list[str] | None = None) -> int:
-    ap = argparse.ArgumentParser(description=__doc__)
+    ap = argparse.ArgumentParser(prog="pixie demo", description=__doc__)
     ap.add_argument("--out", default=None, help="output folder (default out/demo in a checkout, else ./pixie-demo)")
     ap.add_argument("--synthetic", action="store_true", help="use a generated part even if LM-O is present")
     ap.add_argument("--im-id", type=int, default=17)
@@ -122,8 +122,9 @@ def main(argv: list[str] | None = None) -> int:
 
     t0 = time.perf_counter()
     refs = cached_reference_set(mesh, cfg, out / "refs", progress=_progress)
+    refs_path = reference_cache_path(mesh, cfg, out / "refs")
     print(f"reference set: {refs.n_views} views x {refs.n_rolls} rolls at {refs.size} px "
-          f"({time.perf_counter() - t0:.1f} s, cached in {out / 'refs'})")
+          f"({time.perf_counter() - t0:.1f} s) -> {refs_path}")
     save_png(out / "references.png", contact_sheet(refs, views=list(range(0, refs.n_views, 4)), tile=96))
 
     est = PoseEstimator(refs, cfg)
@@ -142,6 +143,10 @@ def main(argv: list[str] | None = None) -> int:
     path = save_png(out / "overlay.png", overlay_pose(image, Renderer(mesh), T, K, T_gt=T_gt))
     print(f"overlay (red: estimate, green: ground truth) -> {path}")
     print(f"reference contact sheet -> {out / 'references.png'}")
+    if (out / "K.txt").is_file() and (out / "bbox.txt").is_file():  # the generated part's inputs: try it yourself
+        print(f"try (the references above are reused, not rebuilt):\n"
+              f"  pixie estimate --refs {refs_path} --image {out}/photo.png --K $(cat {out}/K.txt) "
+              f"--bbox $(cat {out}/bbox.txt) -o {out}/result.json --overlay {out}/estimate.png")
     return 0
 
 
@@ -154,9 +159,7 @@ def _write_inputs(out: Path, mesh: Mesh, image: np.ndarray, K: np.ndarray, bbox:
     save_png(out / "photo.png", image)
     (out / "K.txt").write_text(f"{K[0, 0]:.6g},{K[1, 1]:.6g},{K[0, 2]:.6g},{K[1, 2]:.6g}\n")
     (out / "bbox.txt").write_text(",".join(f"{v:.0f}" for v in bbox) + "\n")
-    print(f"inputs -> {out}/part.stl, photo.png, K.txt, bbox.txt; try:\n"
-          f"  pixie estimate --mesh {out}/part.stl --image {out}/photo.png --K $(cat {out}/K.txt) "
-          f"--bbox $(cat {out}/bbox.txt) -o {out}/result.json --overlay {out}/estimate.png")
+    print(f"inputs -> {out}/part.stl, photo.png, K.txt, bbox.txt")
 
 
 def _progress(done: int, total: int) -> None:

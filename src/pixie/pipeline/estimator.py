@@ -634,6 +634,7 @@ class PoseEstimator:
         """Note on ``res`` what it was computed from: K, the box and its source, the mesh, preset, config, device."""
         res.K, res.box_xyxy, res.box_source = np.asarray(q.K, np.float64), np.asarray(q.box, np.float64), q.box_source
         res.mesh_name, res.mesh_sha256 = self.refs.mesh.name, self.refs.mesh.source_hash
+        res.mesh_file_units = self.refs.mesh.file_units
         res.preset, res.config_digest = self.cfg.preset, self.cfg.digest()
         res.device = str(getattr(self.matcher, "device", "cpu"))
         return res

@@ -39,6 +39,15 @@ def no_box_message(box: str, mask: str, whole: str) -> str:
 NO_BOX_MESSAGE = no_box_message("bbox=(x, y, w, h)", "mask=... (boolean array or mask image)", "bbox=(0, 0, width, height)")
 
 
+UNIT_MM = {"mm": 1.0, "cm": 10.0, "m": 1000.0}
+VIEW_NOTE = ("view / roll: the reference view (0..views-1) and in-plane roll (0..rolls-1) whose matches gave the "
+             "pose's hypothesis; -1 / -1 when it came from a contour template, the edge alignment or a prior, and "
+             "n_inliers is then 0 by construction (not a sign of failure: see confidence and message)")
+SOURCE_NOTE = ("source of the returned pose: 'reference' / 'view_selection' / 'recrop' (matcher + PnP), 'edges' "
+               "(contour template), 'region' (region-refined), 'aligned' (edge alignment of one of those), 'flip' "
+               "(the alignment of a 180-degree flip twin), 'prior' (refined from --init-pose / tracking)")
+
+
 @dataclass(kw_only=True)
 class Hypothesis:
     """One candidate pose: from reference (view, roll), with its PnP support; built with keywords only.
@@ -96,6 +105,7 @@ class PoseResult:
     box_source: str | None = None
     mesh_name: str | None = None
     mesh_sha256: str | None = None
+    mesh_file_units: str | None = None  # the units the mesh file was read in ('mm', 'cm', 'm'); poses are in mm
     preset: str | None = None
     config_digest: str | None = None
     device: str | None = None
@@ -121,10 +131,13 @@ class PoseResult:
             "score": self.score, "score_note": SCORE_NOTE,
             "confidence": self.confidence,
             "confidence_note": CALIBRATED_NOTE if self.confidence_calibrated else CONFIDENCE_NOTE,
-            "n_inliers": self.n_inliers, "view": self.view, "roll": self.roll,
+            "n_inliers": self.n_inliers, "view": self.view, "roll": self.roll, "view_note": VIEW_NOTE,
+            "source": self.hypotheses[0].source if self.hypotheses else None, "source_note": SOURCE_NOTE,
             "K": None if self.K is None else np.asarray(self.K).tolist(),
             "box": box,
-            "mesh": {"name": self.mesh_name, "sha256": self.mesh_sha256},
+            "mesh": {"name": self.mesh_name, "sha256": self.mesh_sha256, "file_units": self.mesh_file_units,
+                     "scale_to_mm": None if self.mesh_file_units is None else UNIT_MM.get(self.mesh_file_units),
+                     "note": "the mesh file's coordinates x scale_to_mm = the model frame of T_cam_from_obj (mm)"},
             "mesh_sha256": self.mesh_sha256,
             "preset": self.preset, "config_digest": self.config_digest, "device": self.device,
             "timings": self.timings,

@@ -87,6 +87,7 @@ def save_reference_set(refs: ReferenceSet, path: str | Path, force: bool = True)
         "pixie_version": __version__,
         "mesh_name": refs.mesh.name,
         "mesh_hash": refs.mesh.source_hash,
+        "mesh_file_units": refs.mesh.file_units,  # the units the mesh file was read in (vertices are stored in mm)
         "config": refs.config.__dict__,
         "build_seconds": refs.build_seconds,
         "encodings": list(refs.encodings),
@@ -152,6 +153,7 @@ def load_reference_set(path: str | Path, mesh: Mesh | str | Path | None = None) 
     try:
         stored_mesh = from_arrays(data["mesh_vertices"], data["mesh_faces"], name=meta["mesh_name"])
         stored_mesh.source_hash = meta["mesh_hash"]
+        stored_mesh.file_units = str(meta.get("mesh_file_units", "unknown"))  # not recorded by older sets
         if "mesh_hull" in data:  # sets written before it was stored compute it on first use
             stored_mesh._hull_vertices = data["mesh_hull"]
         cfg = RefsConfig(**meta["config"])
