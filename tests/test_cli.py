@@ -53,7 +53,9 @@ def test_estimate_writes_a_result_and_an_overlay(built, synthetic_bop):
     res = json.loads((out / "res.json").read_text())
     assert rc == (1 if res["failed"] else 0)
     assert set(res) >= {"T_cam_from_obj", "score", "failed", "hypotheses", "timings"}
-    assert cv2.imread(str(out / "ov.png")).shape == (240, 320, 3)
+    ov = cv2.imread(str(out / "ov.png"))  # the photo under a status banner: green OK / red FAILED
+    assert ov.shape[1] == 320 and 240 < ov.shape[0] <= 240 + 40
+    assert tuple(ov[2, -3]) == ((30, 30, 200) if res["failed"] else (60, 150, 30))
 
 
 @pytest.mark.parametrize("args, message", [
@@ -156,4 +158,5 @@ def test_estimate_from_a_mesh_builds_references_once(tmp_path, monkeypatch, caps
 
     assert res["image"]["sha256"] == hashlib.sha256((tmp_path / "photo.png").read_bytes()).hexdigest()
     assert res["mesh_sha256"] == hashlib.sha256((tmp_path / "part.stl").read_bytes()).hexdigest()
-    assert cv2.imread(str(tmp_path / "o.png")).shape == img.shape
+    ov = cv2.imread(str(tmp_path / "o.png"))  # the photo under its status banner
+    assert ov.shape[1:] == img.shape[1:] and img.shape[0] < ov.shape[0] <= img.shape[0] + 40

@@ -126,6 +126,62 @@ def overlay_result(image: np.ndarray, renderer: Renderer, T: np.ndarray | None, 
     return out
 
 
+def status_view(overlay: np.ndarray, box_xyxy: np.ndarray | None, failed: bool, message: str = "",
+                detail: str = "", zoom_frac: float = 0.4) -> np.ndarray:
+    """The overlay with what a person needs at a glance: a banner on top (green "OK" or red "FAILED: reason",
+    then ``detail``, e.g. the confidence and translation) and, for an object smaller than a third of the image, a
+    zoomed inset of its box region (at most ``zoom_frac`` of the image width) in the corner farthest from it."""
+    img = _rgb(overlay)
+    h, w = img.shape[:2]
+    out = img.copy()
+    if box_xyxy is not None:
+        x0, y0, x1, y1 = (float(v) for v in box_xyxy)
+        bw, bh = max(x1 - x0, 1.0), max(y1 - y0, 1.0)
+        if max(bw / w, bh / h) < 1 / 3:
+            pad = 0.25 * max(bw, bh)
+            cx, cy, half = (x0 + x1) / 2, (y0 + y1) / 2, max(bw, bh) / 2 + pad
+            xa, ya = int(max(cx - half, 0)), int(max(cy - half, 0))
+            xb, yb = int(min(cx + half, w)), int(min(cy + half, h))
+            crop = img[ya:yb, xa:xb]
+            if crop.size:
+                side = int(zoom_frac * min(w, h))
+                f = side / max(crop.shape[:2])
+                inset = cv2.resize(crop, (max(int(crop.shape[1] * f), 1), max(int(crop.shape[0] * f), 1)),
+                                   interpolation=cv2.INTER_NEAREST if f >= 2 else cv2.INTER_LINEAR)
+                ih, iw = inset.shape[:2]
+                # the corner farthest from the object
+                left = cx > w / 2
+                top = cy > h / 2
+                ox, oy = (4 if left else w - iw - 4), (4 if top else h - ih - 4)
+                out[oy:oy + ih, ox:ox + iw] = inset
+                cv2.rectangle(out, (ox - 1, oy - 1), (ox + iw, oy + ih), (255, 255, 255), 1)
+    bar_h = max(24, h // 16)
+    scale = bar_h / 40
+    colour = (200, 30, 30) if failed else (30, 150, 60)
+    head = f"FAILED: {message}" if failed else "OK"
+    banner = np.full((bar_h, w, 3), colour, np.uint8)
+    text = head + (f"   {detail}" if detail else "")
+    th = max(1, int(round(2 * scale)))
+    tw = cv2.getTextSize(text, cv2.FONT_HERSHEY_SIMPLEX, scale, th)[0][0]
+    if tw > w - 12:  # shrink to fit the width (down to a readable minimum), then cut
+        scale = max(scale * (w - 12) / tw, 0.35)
+        th = max(1, int(round(2 * scale)))
+        while len(text) > 8 and cv2.getTextSize(text, cv2.FONT_HERSHEY_SIMPLEX, scale, th)[0][0] > w - 12:
+            text = text[:-2]
+    cv2.putText(banner, text, (6, int(bar_h * 0.72)), cv2.FONT_HERSHEY_SIMPLEX, scale, (255, 255, 255), th, cv2.LINE_AA)
+    return np.concatenate([banner, out], axis=0)
+
+
+def pose_detail(res, gt_error: dict | None = None) -> str:
+    """One line for the banner: confidence, the translation (mm) and, with a ground truth, the errors."""
+    parts = [f"confidence {res.confidence:.2f}"]
+    if res.T_cam_from_obj is not None:
+        parts.append("t = (" + ", ".join(f"{v:.0f}" for v in res.T_cam_from_obj[:3, 3]) + ") mm")
+    if gt_error:
+        parts.append(f"vs GT {gt_error['rot_deg']:.1f} deg, {gt_error['trans_mm']:.1f} mm")
+    return ", ".join(parts)
+
+
 def encode_png(rgb: np.ndarray) -> bytes:
     """PNG bytes of an RGB (or grey) image."""
     ok, buf = cv2.imencode(".png", _rgb(rgb)[..., ::-1])

@@ -52,7 +52,7 @@ from pixie.pipeline.query import bbox_from_mask, check_bbox, load_image
 from pixie.pose.results import NO_BOX_WHY
 from pixie.references.store import ensure_templates, load_reference_set
 from pixie.geometry.render import Renderer
-from pixie.viz import encode_png, overlay_result
+from pixie.viz import encode_png, overlay_result, pose_detail, status_view
 from pixie.weights import sha256_file
 
 __all__ = ["BatchItem", "read_manifest", "folder_items", "run_batch", "IMAGE_SUFFIXES", "BATCH_OUTPUTS"]
@@ -229,9 +229,9 @@ def _process(state: dict, job: dict) -> dict:
 
             bbox = job["bbox"] if job["bbox"] is not None else bbox_from_mask(mask)
             box = check_bbox(bbox, image.shape[:2])
-            label = f"{'FAILED ' if res.failed else ''}conf {res.confidence:.2f}"
-            rec["overlay_png"] = encode_png(overlay_result(image, state["renderer"][job["refs"]], res.T_cam_from_obj,
-                                                           K, box, label))
+            label = f"conf {res.confidence:.2f}"
+            ov = overlay_result(image, state["renderer"][job["refs"]], res.T_cam_from_obj, K, box, label)
+            rec["overlay_png"] = encode_png(status_view(ov, box, res.failed, res.message, pose_detail(res)))
     except PixieError as exc:
         rec["result"] = {"T_cam_from_obj": None, "failed": True, "message": f"{type(exc).__name__}: {exc}",
                          "score": 0.0, "confidence": 0.0, "warnings": list(state.get("notes") or [])}

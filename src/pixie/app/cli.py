@@ -45,7 +45,7 @@ from pixie.app.notes import annotate, collect_warnings
 from pixie.app.signals import Terminated, on_sigterm, say_terminated
 from pixie.app.track import Frame, Tracker, frame_paths, read_pose_file
 from pixie.synth.check import BACKGROUNDS, check_scene, pose_error
-from pixie.viz import contact_sheet, overlay_result, save_png
+from pixie.viz import contact_sheet, overlay_result, pose_detail, save_png, status_view
 from pixie.weights import cache_dir, sha256_file, weights_status
 
 
@@ -253,8 +253,10 @@ def _estimate_one(args: argparse.Namespace, notes) -> int:
         write_atomic(out_json, json.dumps(record, indent=1) + "\n", force=args.force)
         print(f"result -> {out_json}")
     if out_png:
-        label = f"{'FAILED ' if res.failed else ''}confidence {res.confidence:.2f}"
-        save_png(out_png, overlay_result(image, Renderer(refs.mesh), T, K, res.box_xyxy, label), force=args.force)
+        label = f"confidence {res.confidence:.2f}"
+        ov = overlay_result(image, Renderer(refs.mesh), T, K, res.box_xyxy, label)
+        save_png(out_png, status_view(ov, res.box_xyxy, res.failed, res.message, pose_detail(res, gt_err)),
+                 force=args.force)
         print(f"overlay -> {out_png}")
     return 1 if res.failed else 0
 
