@@ -221,6 +221,9 @@ def _estimate_one(args: argparse.Namespace, notes) -> int:
             check_query_mask(mask, image.shape[:2], box)
     _matcher_for(refs, cfg, args)
     est = PoseEstimator(refs, cfg)
+    print(("refining the --init-pose (edge alignment)" if T_init is not None else
+           f"estimating: matching {refs.n_views} views, PnP, shape cues, edge alignment (a few seconds)") + " ...",
+          flush=True)
     if T_init is not None:  # refine the prior: no view search
         res = annotate(est.estimate_from_prior(image, K, T_init, bbox=bbox, mask=mask), est, cfg, notes)
     else:
