@@ -321,13 +321,17 @@ def _cmd(*argv) -> list[str]:
     return [sys.executable, "-m", "pixie", *map(str, argv)]
 
 
-def _env() -> dict:
-    return dict(os.environ, PYTHONPATH=str(SRC), PYTHONUNBUFFERED="1", OMP_NUM_THREADS="1")
+def _env(cache: Path | None = None) -> dict:
+    """The spawned command's environment; ``cache``: its user cache (``estimate --mesh`` builds its set there)."""
+    env = dict(os.environ, PYTHONPATH=str(SRC), PYTHONUNBUFFERED="1", OMP_NUM_THREADS="1")
+    if cache is not None:
+        env["XDG_CACHE_HOME"] = str(cache)
+    return env
 
 
-def _work_seconds(argv) -> float:
+def _work_seconds(argv, cache: Path | None = None) -> float:
     """Run to completion; the seconds from its first printed line (after the imports) to its exit."""
-    proc = subprocess.Popen(_cmd(*argv), env=_env(), stdout=subprocess.PIPE, stderr=subprocess.DEVNULL, text=True,
+    proc = subprocess.Popen(_cmd(*argv), env=_env(cache), stdout=subprocess.PIPE, stderr=subprocess.DEVNULL, text=True,
                             start_new_session=True)
     try:
         assert proc.stdout.readline(), "no output"
@@ -341,9 +345,9 @@ def _work_seconds(argv) -> float:
     return time.perf_counter() - t0
 
 
-def _kill_after(argv, delay: float) -> int | None:
+def _kill_after(argv, delay: float, cache: Path | None = None) -> int | None:
     """Start the command, SIGKILL its process group ``delay`` s after its first line; its exit code if it ended first."""
-    proc = subprocess.Popen(_cmd(*argv), env=_env(), stdout=subprocess.PIPE, stderr=subprocess.DEVNULL, text=True,
+    proc = subprocess.Popen(_cmd(*argv), env=_env(cache), stdout=subprocess.PIPE, stderr=subprocess.DEVNULL, text=True,
                             start_new_session=True)
     try:
         proc.stdout.readline()
@@ -406,13 +410,15 @@ def test_seeded_sigkills_lose_nothing_and_leave_nothing(part, bop, tmp_path):
         shutil.copy(part["photo"], photos / f"p{k}.png")
     batch = ["estimate", "--mesh", part["mesh"], "--batch", photos, "--K", K_TEXT, "--bbox", _box(part["box"]),
              *TINY_RUN[1:]]
-    t_batch = _work_seconds([*batch, "-o", tmp_path / "batch_ref"])
-    for _ in range(8):
-        _kill_after([*batch, "-o", tmp_path / "batch"], rng.uniform(0.0, t_batch))
-    subprocess.run(_cmd(*batch, "-o", tmp_path / "batch"), env=_env(), timeout=180, check=True, capture_output=True)
+    t_batch = _work_seconds([*batch, "-o", tmp_path / "batch_ref"], cache=tmp_path / "cache_ref")
+    for _ in range(8):  # in a cache of their own: the kills also hit the set's build under its lock
+        _kill_after([*batch, "-o", tmp_path / "batch"], rng.uniform(0.0, t_batch), cache=tmp_path / "cache")
+    subprocess.run(_cmd(*batch, "-o", tmp_path / "batch"), env=_env(tmp_path / "cache"), timeout=180, check=True,
+                   capture_output=True)
     assert _poses(tmp_path / "batch" / "results.csv") == _poses(tmp_path / "batch_ref" / "results.csv")
     assert len((tmp_path / "batch" / "results.jsonl").read_text().splitlines()) == 3
     _no_leftovers(tmp_path / "batch")
+    _no_leftovers(tmp_path / "cache" / "pixie" / "refs")
 
 
 def test_api_result_carries_the_warnings_and_settings(part, tmp_path):

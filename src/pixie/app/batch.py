@@ -13,7 +13,8 @@ an image (white = object); every row needs a bbox or a mask. Optional columns ``
 JSON manifests are a list of objects with the same keys (``K`` and ``bbox`` may be lists).
 
 **Several objects per photo:** a row per (photo, object, box or mask), with the object named per row by a ``refs``
-(a reference set) or ``mesh`` (a CAD file: its set is built once into ``OUT/refs``) column; rows without one use
+(a reference set) or ``mesh`` (a CAD file: its set is built once into the user cache, as for ``estimate --mesh``)
+column; rows without one use
 ``--refs`` / ``--mesh``. Rows of one photo share one overlay with every object drawn (``overlays/*_all.png``).
 
 One estimator per reference set serves its images (loaded or built once). Outputs in ``OUT``:

@@ -282,20 +282,21 @@ def _estimate_batch(args: argparse.Namespace) -> int:
                                                              *(i.image for i in items), *(i.mask for i in items),
                                                              *(i.refs for i in items), *(i.mesh for i in items)])
     own = [it for it in items if it.refs is not None or it.mesh is not None]  # rows naming their own object
+    shared_refs = cache_dir().parent / "refs"  # the cache of `estimate --mesh` and estimate_pose: built once for all
     refs_path = None
     if len(own) < len(items) or args.refs or args.mesh:
-        refs, refs_path = _refs_for_estimate(args, cfg, out / "refs")
+        refs, refs_path = _refs_for_estimate(args, cfg, shared_refs)
         _matcher_for(refs, cfg, args)
         del refs
     built: dict[Path, Path] = {}
     for it in own:
-        if it.mesh is not None:  # a row's CAD file: its set built once into OUT/refs (the --mesh cache)
+        if it.mesh is not None:  # a row's CAD file: its set built once into the user cache (as --mesh)
             if it.mesh not in built:
                 mesh = _load_mesh(str(it.mesh), args.units)
-                path = reference_cache_path(mesh, cfg, out / "refs")
+                path = reference_cache_path(mesh, cfg, shared_refs)
                 if not path.is_file():
                     print(f"building references of {mesh.name} (preset {cfg.preset}) -> {path}")
-                cached_reference_set(mesh, cfg, out / "refs", progress=tqdm_progress("view"))
+                cached_reference_set(mesh, cfg, shared_refs, progress=tqdm_progress("view"))
                 built[it.mesh] = path
             it.refs = built[it.mesh]
     if own:
