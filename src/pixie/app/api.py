@@ -65,6 +65,11 @@ def _reference_set(obj: Any, cfg: PixieConfig, units: str, cache: Path | None, q
     return refs, ("mesh", mesh.source_hash, mesh.file_units)
 
 
+def _stage_line(stage: str) -> None:
+    """The API's status line on stderr (``quiet=False``): the stage that is running."""
+    print(f"\rpixie: estimating: {stage} ..." + " " * 20, end="", file=sys.stderr, flush=True)
+
+
 def estimate_pose(mesh_or_refs: Any, image: Any, K: Any, bbox: Sequence[float] | None = None,
                   mask: Any = None, *, preset: str = DEFAULT_PRESET, config: PixieConfig | None = None,
                   units: str = "auto", device: str | None = None, cache_dir: str | Path | None = None,
@@ -138,7 +143,11 @@ def estimate_pose(mesh_or_refs: Any, image: Any, K: Any, bbox: Sequence[float] |
         if init_pose is not None:
             res = est.estimate_from_prior(image, parse_K(K), init_pose, bbox=bbox, mask=mask)
         else:
-            res = est.estimate(image, parse_K(K), bbox=bbox, mask=mask)
+            res = est.estimate(image, parse_K(K), bbox=bbox, mask=mask,
+                               progress=None if quiet else _stage_line)
+            if not quiet:
+                print(f"\rpixie: estimated in {res.timings.get('total', 0.0):.1f} s" + " " * 40, file=sys.stderr,
+                      flush=True)
     for message in notes.items:  # the caller's own warning handling sees them as before
         warnings.warn(message, UserWarning, stacklevel=2)
     return annotate(res, est, cfg, notes)

@@ -221,13 +221,18 @@ def _estimate_one(args: argparse.Namespace, notes) -> int:
             check_query_mask(mask, image.shape[:2], box)
     _matcher_for(refs, cfg, args)
     est = PoseEstimator(refs, cfg)
-    print(("refining the --init-pose (edge alignment)" if T_init is not None else
-           f"estimating: matching {refs.n_views} views, PnP, shape cues, edge alignment (a few seconds)") + " ...",
-          flush=True)
     if T_init is not None:  # refine the prior: no view search
+        print("refining the --init-pose (edge alignment) ...", flush=True)
         res = annotate(est.estimate_from_prior(image, K, T_init, bbox=bbox, mask=mask), est, cfg, notes)
     else:
-        res = annotate(est.estimate(image, K, bbox=bbox, mask=mask), est, cfg, notes)
+        stages: list[str] = []
+
+        def show(stage: str) -> None:  # one status line, rewritten as each stage starts
+            stages.append(stage)
+            print(f"\restimating: {' > '.join(stages)} ...", end="", flush=True)
+
+        res = annotate(est.estimate(image, K, bbox=bbox, mask=mask, progress=show), est, cfg, notes)
+        print(f"\restimating: {' > '.join(stages)}: done in {res.timings.get('total', 0.0):.1f} s", flush=True)
     T = res.T_cam_from_obj
     n_warn = f" ({len(res.warnings)} warning{'s' * (len(res.warnings) > 1)} above)" if res.warnings else ""
     status = "FAILED (" + res.message + ")" if res.failed else "ok" + n_warn

@@ -34,7 +34,7 @@ import copy
 import logging
 import time
 from dataclasses import dataclass
-from typing import NamedTuple
+from typing import Callable, NamedTuple
 
 import numpy as np
 
@@ -186,8 +186,12 @@ class PoseEstimator:
             self._shape = shape_cues(refs, self.cfg.shape)
 
     # ------------------------------------------------------------------------------------------------
-    def estimate(self, image: np.ndarray, K: np.ndarray, bbox=None, mask: np.ndarray | None = None) -> PoseResult:
+    def estimate(self, image: np.ndarray, K: np.ndarray, bbox=None, mask: np.ndarray | None = None,
+                 progress: Callable[[str], None] | None = None) -> PoseResult:
         """Pose of the object in ``image`` (RGB uint8) with intrinsics ``K``; crop from ``bbox`` or ``mask``.
+
+        ``progress(stage)`` is called as each stage starts ('features', 'matching', 'pnp', 'view selection',
+        'shape cues', 'alignment'): a command line shows it, so that no step of a few seconds is silent.
 
         ``bbox`` is (x, y, w, h) with ``w``, ``h`` counting pixels (OpenCV ``boundingRect``, COCO); BOP's stored
         boxes are one pixel smaller (:attr:`pixie.eval.datasets.GtInstance.box_visib` converts). Its size sets
@@ -196,24 +200,31 @@ class PoseEstimator:
         t_all = time.perf_counter()
         timings: dict[str, float] = {}
 
+        say = progress or (lambda stage: None)
         t = time.perf_counter()
+        say("features")
         q = self.prepare(image, K, bbox, mask)
         timings["extract"] = time.perf_counter() - t
 
         t = time.perf_counter()
+        say("matching")
         corr = self.match(q)
         q.background = background_similarity([c.sims for c in corr.values()])
         timings["match"] = time.perf_counter() - t
 
         t = time.perf_counter()
+        say("pnp")
         hyps = self.solve(q, corr)
         timings["pnp"] = time.perf_counter() - t
 
         t = time.perf_counter()
+        say("view selection")
         hyps = self.select_views(q, hyps)
         timings["view_selection"] = time.perf_counter() - t
 
         shape_first = self._shape is not None and self.cfg.shape.before_render
+        if self._shape is not None:
+            say("shape cues")
         if shape_first:  # the fused ranking chooses what render refinement refines
             hyps = self.shape_stage(q, hyps, timings)
         if self.cfg.refine.render_iters > 0 and hyps:
@@ -228,6 +239,7 @@ class PoseEstimator:
             hyps = self.shape_stage(q, hyps, timings)
         if self.cfg.align.enabled and hyps:
             t = time.perf_counter()
+            say("alignment")
             hyps = self.align_stage(q, hyps)
             timings["align"] = time.perf_counter() - t
         timings["total"] = time.perf_counter() - t_all
