@@ -65,8 +65,9 @@ def scene(tmp_path_factory, proc_mesh, matcher_name, build_refs):
     for i, (m, mv) in enumerate(zip(meshes, ph.masks_visib)):
         refs = save_reference_set(build_refs(m, cfg.refs, matcher=matcher), d / f"{m.name}.npz")
         ys, xs = np.nonzero(mv)
+        (d / f"gt{i + 1}.json").write_text(json.dumps({"T_cam_from_obj": poses[i].tolist()}))
         rows.append({"image": "photo.png", "K": "600,600,319.5,239.5", "obj_id": i + 1, "refs": refs.name,
-                     "bbox": f"{xs.min()},{ys.min()},{np.ptp(xs) + 1},{np.ptp(ys) + 1}"})
+                     "bbox": f"{xs.min()},{ys.min()},{np.ptp(xs) + 1},{np.ptp(ys) + 1}", "gt_pose": f"gt{i + 1}.json"})
     with open(d / "manifest.csv", "w", newline="") as fh:
         w = csv.DictWriter(fh, fieldnames=list(rows[0]))
         w.writeheader()
@@ -94,6 +95,9 @@ def test_three_objects_in_one_photo_give_three_poses_three_rows_and_one_overlay(
         assert abs(T[2, 3] - Tg[2, 3]) / Tg[2, 3] < 0.05, (r["refs"], T[:3, 3], Tg[:3, 3])
         if r["obj_id"] != 3:  # the peg's cylinder is nearly symmetric about its axis: depth only
             assert rotation_angle_deg(T[:3, :3], Tg[:3, :3]) < 5.0, r["refs"]
+        # the manifest's gt_pose: the same errors, in the result and on the page
+        assert r["result"]["gt_error"]["rot_deg"] == pytest.approx(rotation_angle_deg(T[:3, :3], Tg[:3, :3]), abs=1e-6)
+    assert "error vs the manifest's gt_pose" in (d / "out" / "index.html").read_text()
 
 
 def test_a_row_without_an_object_and_no_default_is_refused(scene):

@@ -9,7 +9,8 @@ images' names) or a manifest, CSV or JSON, one row per image::
 
 ``K`` is ``fx,fy,cx,cy`` (or 9 values), ``bbox`` ``x,y,w,h`` in pixels (``w``, ``h`` counting pixels), ``mask``
 an image (white = object); every row needs a bbox or a mask. Optional columns ``scene_id``, ``im_id``,
-``obj_id`` go to the BOP CSV (defaults 0, the row number, 1). Paths are relative to the manifest.
+``obj_id`` go to the BOP CSV (defaults 0, the row number, 1); ``gt_pose`` (a pose file) adds the estimate's
+error against it to the result and the page. Paths are relative to the manifest.
 JSON manifests are a list of objects with the same keys (``K`` and ``bbox`` may be lists).
 
 **Several objects per photo:** a row per (photo, object, box or mask), with the object named per row by a ``refs``
@@ -38,12 +39,14 @@ from dataclasses import dataclass
 from pathlib import Path
 from typing import Callable
 
+import cv2
 import numpy as np
 
 from pixie.geometry.camera import parse_box, parse_K
 from pixie.app.cluster import WorkerSpec, ray_map, serial_map
 from pixie.app.notes import Notes, annotate, collect_warnings
 from pixie.app.runner import Journal
+from pixie.app.track import read_pose_file
 from pixie.config import PixieConfig
 from pixie.errors import ConfigError, ImageError, PixieError, UsageError
 from pixie.pipeline.estimator import PoseEstimator
@@ -54,6 +57,7 @@ from pixie.pose.results import NO_BOX_WHY
 from pixie.references.store import ensure_templates, load_reference_set
 from pixie.geometry.render import Renderer
 from pixie.viz import encode_png, overlay_result, pose_detail, status_view
+from pixie.synth.check import pose_error
 from pixie.weights import sha256_file
 
 __all__ = ["BatchItem", "read_manifest", "folder_items", "run_batch", "IMAGE_SUFFIXES", "BATCH_OUTPUTS"]
@@ -74,6 +78,7 @@ class BatchItem:
     im_id: int = 0
     obj_id: int = 1
     refs: Path | None = None  # this row's reference set (several objects per photo); None: the batch's
+    gt_pose: Path | None = None  # a pose file with this row's true pose: its errors go into the result and the page
     mesh: Path | None = None  # or its CAD file (the CLI builds the set once and fills ``refs``)
 
     @property
@@ -127,9 +132,10 @@ def read_manifest(path: str | Path) -> list[BatchItem]:
         image = base / str(row["image"])
         mask = base / str(row["mask"]) if has_mask else None
         obj = {k: base / str(row[k]) for k in ("refs", "mesh") if row.get(k) not in (None, "")}
+        gt = {"gt_pose": base / str(row["gt_pose"])} if row.get("gt_pose") not in (None, "") else {}
         if len(obj) == 2:
             raise ConfigError(f"{where}: give the object as 'refs' or as 'mesh', not both")
-        for p in (image, mask, *obj.values()):
+        for p in (image, mask, *obj.values(), *gt.values()):
             if p is not None and not p.is_file():
                 missing.append(f"{where}: {p}")
         ids = {}
@@ -139,7 +145,7 @@ def read_manifest(path: str | Path) -> list[BatchItem]:
             except (TypeError, ValueError) as exc:
                 raise ConfigError(f"{where}: {key} must be an integer, got {row[key]!r}") from exc
         box = parse_box(row["bbox"], "bbox", where, ConfigError) if has_box else None
-        items.append(BatchItem(image, parse_K(row["k"], "K", where, ConfigError), box, mask, **ids, **obj))
+        items.append(BatchItem(image, parse_K(row["k"], "K", where, ConfigError), box, mask, **ids, **obj, **gt))
     if missing:
         raise ImageError(f"{len(missing)} file(s) of the manifest do not exist:\n  " + "\n  ".join(missing[:20]))
     return items
@@ -187,7 +193,9 @@ def item_key(item: BatchItem, image_sha: str, mask_sha: str | None, config_diges
     blob = json.dumps({"item": [str(item.image.resolve()), item.scene_id, item.im_id, item.obj_id],
                        "image": image_sha, "mask": mask_sha, "K": np.round(item.K, 9).tolist(),
                        "bbox": None if item.bbox is None else np.round(item.bbox, 6).tolist(),
-                       "config": config_digest, "refs": refs_sha}, sort_keys=True)
+                       "config": config_digest, "refs": refs_sha,
+                       **({"gt": [str(item.gt_pose), sha256_file(item.gt_pose)]} if item.gt_pose else {})},
+                      sort_keys=True)
     return hashlib.sha256(blob.encode()).hexdigest()[:20]
 
 
@@ -215,8 +223,8 @@ def _process(state: dict, job: dict) -> dict:
     """Estimate one photo; a bad input gives a failed record, never an exception."""
 
     t0 = time.perf_counter()
-    rec = {k: job[k] for k in ("key", "row", "name", "image", "image_sha256", "K", "bbox", "mask",
-                               "scene_id", "im_id", "obj_id", "refs")}
+    rec = {k: job.get(k) for k in ("key", "row", "name", "image", "image_sha256", "K", "bbox", "mask",
+                                   "scene_id", "im_id", "obj_id", "refs", "gt_pose")}
     try:
         est = _estimator(state, job["refs"])
         notes = Notes().extend(state.get("notes"))
@@ -226,6 +234,8 @@ def _process(state: dict, job: dict) -> dict:
             K = np.asarray(job["K"], np.float64)
             res = est.estimate(image, K, bbox=job["bbox"], mask=mask)
         rec["result"] = annotate(res, est, state["cfg"], notes.extend(seen.items)).to_dict()
+        if job.get("gt_pose") and res.T_cam_from_obj is not None:
+            rec["result"]["gt_error"] = pose_error(res.T_cam_from_obj, read_pose_file(job["gt_pose"]), est.refs.mesh.vertices)
         if state["overlays"]:
 
             bbox = job["bbox"] if job["bbox"] is not None else bbox_from_mask(mask)
@@ -293,7 +303,8 @@ def run_batch(items: list[BatchItem], out_dir: str | Path, config: PixieConfig, 
                      "image": str(it.image), "image_sha256": img_sha, "K": it.K.tolist(),
                      "bbox": None if it.bbox is None else it.bbox.tolist(),
                      "mask": None if it.mask is None else str(it.mask),
-                     "scene_id": it.scene_id, "im_id": it.im_id, "obj_id": it.obj_id})
+                     "scene_id": it.scene_id, "im_id": it.im_id, "obj_id": it.obj_id,
+                     "gt_pose": None if it.gt_pose is None else str(it.gt_pose)})
     journal = Journal(out / "journal.jsonl", key=lambda rec: rec["key"])  # the reader pixie run uses too
     done = journal.records
     todo = [j for j in jobs if j["key"] not in done]
@@ -386,21 +397,26 @@ def _html(records: list[dict], n_total: int, config: PixieConfig) -> str:
         res = r["result"]
         T = res.get("T_cam_from_obj")
         t = "" if T is None else ", ".join(f"{v:.1f}" for v in np.asarray(T)[:3, 3])
+        rv = "" if T is None else ", ".join(f"{v:.1f}" for v in np.degrees(cv2.Rodrigues(np.asarray(T)[:3, :3])[0].ravel()))
+        ge = res.get("gt_error")
+        err = "" if not ge else f"{ge['rot_deg']:.2f}&deg;, {ge['trans_mm']:.1f} mm (ADD {ge['add_mm']:.1f} mm)"
         status = "FAILED: " + html.escape(str(res.get("message", ""))) if res.get("failed") else "ok"
         shown = r.get("photo_overlay") or r.get("overlay")  # every object of the photo, when it has several
         img = (f'<a href="{html.escape(shown)}"><img src="{html.escape(shown)}" width="480"></a>'
                if shown else "")
         rows.append(f"<tr><td>{r['row']}</td><td>{html.escape(r['name'])}</td><td>{img}</td><td>{status}</td>"
-                    f"<td>{res.get('score', 0):.2f}</td><td>{res.get('confidence', 0):.2f}</td><td>{t}</td>"
+                    f"<td>{res.get('score', 0):.2f}</td><td>{res.get('confidence', 0):.2f}</td><td>{rv}</td><td>{t}</td><td>{err}</td>"
                     f"<td>{r['time_s']:.1f}</td></tr>")
     return f"""<!doctype html><html><head><meta charset="utf-8"><title>pixie batch</title>
 <style>body{{font-family:sans-serif}} td{{padding:4px;vertical-align:top;border-bottom:1px solid #ddd}}</style></head>
 <body><h1>pixie batch: {len(records)} of {n_total} images done</h1>
 <p>preset {html.escape(str(config.preset))}, config digest {config.digest()}. Overlay: model contour at the estimate (red),
 object axes at its origin (x red, y green, z blue), the given box (yellow). Confidence = best score / (best + second
-distinct hypothesis's score): a margin between hypotheses, not a calibrated probability. Translation t in mm, camera frame
+distinct hypothesis's score) without the alignment; with it (presets default, fast) the calibrated probability that the
+pose is right (README, "Results you can use"). Translation t in mm, camera frame
 (OpenCV: x right, y down, z forward).</p>
-<table><tr><th>#</th><th>image</th><th>overlay</th><th>status</th><th>score</th><th>confidence</th><th>t (mm)</th>
+<table><tr><th>#</th><th>image</th><th>overlay</th><th>status</th><th>score</th><th>confidence</th>
+<th>R as a rotation vector (deg)</th><th>t (mm)</th><th>error vs the manifest's gt_pose</th>
 <th>s</th></tr>
 {chr(10).join(rows)}
 </table></body></html>
