@@ -48,7 +48,7 @@ say "pixie demo (generated part; preset fast to keep the check short)"
 run pixie demo --preset fast --out "$TMP/run/demo"
 say "pixie estimate on the generated part"
 D="$TMP/run/demo"
-run pixie estimate --preset fast --refs "$(ls "$D"/refs/*.npz | head -1)" --image "$D/photo.png" --K "$(cat "$D/K.txt")" \
+run pixie estimate --preset fast --refs "$(ls "$TMP"/home/.cache/pixie/refs/*.npz | head -1)" --image "$D/photo.png" --K "$(cat "$D/K.txt")" \
   --bbox "$(cat "$D/bbox.txt")" -o "$D/result.json" --overlay "$D/estimate.png"
 test -s "$D/result.json" && test -s "$D/estimate.png"
 say "check your setup: pixie render -> pixie estimate --gt"
@@ -56,7 +56,7 @@ run pixie render --mesh "$D/part.stl" -o "$D/check" --seed 3
 S="$D/check/scene.json"
 K_ARG="$("$TMP/venv/bin/python" -c "import json,sys; print(json.load(open(sys.argv[1]))['K_arg'])" "$S")"
 BOX="$("$TMP/venv/bin/python" -c "import json,sys; print(','.join(map(str, json.load(open(sys.argv[1]))['bbox_xywh'])))" "$S")"
-run pixie estimate --preset fast --refs "$(ls "$D"/refs/*.npz | head -1)" --image "$D/check/photo.png" --K "$K_ARG" \
+run pixie estimate --preset fast --refs "$(ls "$TMP"/home/.cache/pixie/refs/*.npz | head -1)" --image "$D/check/photo.png" --K "$K_ARG" \
   --bbox "$BOX" --gt "$D/check/gt_pose.json" | tee "$D/check/estimate.txt"
 grep -q "error against --gt" "$D/check/estimate.txt"
 say "OK: the installed wheel runs offline with no shared data"

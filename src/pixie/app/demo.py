@@ -32,7 +32,7 @@ from pixie.app.runner import cached_reference_set, reference_cache_path
 from pixie.paths import not_an_input
 from pixie.viz import contact_sheet, overlay_pose, save_png
 from pixie.threads import default_threads, set_threads
-from pixie.weights import repo_root, shared_root
+from pixie.weights import cache_dir, repo_root, shared_root
 
 REPO = Path(__file__).resolve().parents[3]
 
@@ -104,7 +104,7 @@ def main(argv: list[str] | None = None) -> int:
 
     if lmo is not None and not args.synthetic:
         # the demo writes overlay.png, references.png and refs/ into --out: never into (a folder of) the dataset
-        not_an_input([out, out / "refs"], [lmo, Path(lmo) / "models", Path(lmo) / "test"])
+        not_an_input([out], [lmo, Path(lmo) / "models", Path(lmo) / "test"])
         ds = BopDataset(lmo)
         mesh = load_mesh(ds.model_path(args.obj_id))
         image, K = ds.load_rgb(2, args.im_id), ds.camera(2, args.im_id).K
@@ -117,12 +117,14 @@ def main(argv: list[str] | None = None) -> int:
         bbox = bbox_from_mask(Renderer(mesh).render(T_gt, K, *image.shape[:2]).mask)
         source = ("generated part, rendered photo" + ("" if args.synthetic else " (LM-O data not found beside the repository)"))
         _write_inputs(out, mesh, image, K, bbox)
+        mesh = load_mesh(out / "part.stl", units="mm")  # the written file: `estimate --mesh part.stl` finds its set
     print(f"pixie demo: {source}")
     print(f"mesh {mesh.name}: {len(mesh.faces)} triangles, diameter {mesh.diameter:.1f} mm")
 
     t0 = time.perf_counter()
-    refs = cached_reference_set(mesh, cfg, out / "refs", progress=_progress)
-    refs_path = reference_cache_path(mesh, cfg, out / "refs")
+    cache = cache_dir().parent / "refs"  # the cache `pixie estimate --mesh` and estimate_pose use: built once for all
+    refs = cached_reference_set(mesh, cfg, cache, progress=_progress)
+    refs_path = reference_cache_path(mesh, cfg, cache)
     print(f"reference set: {refs.n_views} views x {refs.n_rolls} rolls at {refs.size} px "
           f"({time.perf_counter() - t0:.1f} s) -> {refs_path}")
     save_png(out / "references.png", contact_sheet(refs, views=list(range(0, refs.n_views, 4)), tile=96))
@@ -144,7 +146,7 @@ def main(argv: list[str] | None = None) -> int:
     print(f"overlay (red: estimate, green: ground truth) -> {path}")
     print(f"reference contact sheet -> {out / 'references.png'}")
     if (out / "K.txt").is_file() and (out / "bbox.txt").is_file():  # the generated part's inputs: try it yourself
-        print(f"try (the references above are reused, not rebuilt):\n"
+        print(f"try (the references above are reused, not rebuilt; --mesh {out}/part.stl finds them too):\n"
               f"  pixie estimate --refs {refs_path} --image {out}/photo.png --K $(cat {out}/K.txt) "
               f"--bbox $(cat {out}/bbox.txt) -o {out}/result.json --overlay {out}/estimate.png")
     return 0
