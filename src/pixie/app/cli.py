@@ -113,7 +113,8 @@ def cmd_refs_build(args: argparse.Namespace) -> int:
     n_views = cfg.refs.n_fibonacci + (6 if cfg.refs.canonical else 0)
     print(f"{mesh.name}: {len(mesh.vertices)} vertices; "
           f"{n_views} views x {cfg.refs.rotations} rolls at {cfg.refs.size} px, encodings {cfg.refs.encodings}, "
-          f"features: {matcher.name if matcher else 'none'}")
+          f"features: {matcher.name if matcher else 'none'}"
+          + (f"; + {cfg.shape.views} contour templates" if cfg.shape.enabled else ""))
     refs = build_reference_set(mesh, cfg.refs, matcher=matcher, progress=tqdm_progress("view"), workers=args.workers,
                                shape=cfg.shape)
     path = save_reference_set(refs, out, force=args.force)  # refused if another process wrote it meanwhile

@@ -197,7 +197,7 @@ def build_reference_set(
     matcher : pixie.matching Matcher, optional
         When given, features of every encoded image (all rolls) are extracted and stored.
     progress : callable(done, total), optional
-        Called after each view with (views done, total views).
+        Called after each view with (done, total): the views, then (with ``shape.enabled``) the contour templates.
     workers : int
         Processes that render and encode in parallel (views are independent); features are
         extracted in this process while the workers render the next views.
@@ -224,6 +224,7 @@ def build_reference_set(
     dist = camera_distance(mesh.bounding_radius, K0[0, 0], S, fill=1.0 / cfg.crop_pad)
     base = view_poses(mesh.center, dist, cfg.n_fibonacci, cfg.canonical)
     V, R = len(base), max(int(cfg.rotations), 1)
+    total = V + (int(shape.views) if shape.enabled else 0)  # progress counts the views, then the contour templates
     poses = np.zeros((V, R, 4, 4))
     Ks = np.zeros((V, R, 3, 3))
     depth = np.zeros((V, S, S), np.float32)
@@ -245,7 +246,7 @@ def build_reference_set(
                 feats[e].append(f)
                 xyzs[e].append(keypoint_xyz_from_depth(view["depth"][j], Ks[i, j], poses[i, j], f.keypoints))
         if progress:
-            progress(i + 1, V)
+            progress(i + 1, total)
     refs = ReferenceSet(
         mesh=mesh, config=cfg, poses=poses, Ks=Ks, K_start=K0,
         canonical=np.arange(V) < (6 if cfg.canonical else 0),
@@ -254,14 +255,16 @@ def build_reference_set(
     )
     if matcher is not None:
         _store_features(refs, matcher.name, feats, xyzs)
-    if shape.enabled:
-        refs.templates = _build_templates(refs.mesh, shape).to_arrays()
+    if shape.enabled:  # the contour templates continue the same progress count (no silent seconds after the views)
+        tp = None if progress is None else (lambda j, n: progress(V + j, total))
+        refs.templates = _build_templates(refs.mesh, shape, tp).to_arrays()
     refs.build_seconds = time.perf_counter() - t0
     return refs
 
 
-def _build_templates(mesh: Mesh, shape: ShapeConfig) -> ContourTemplates:
-    return build_templates(mesh, shape.views, shape.size, shape.points)
+def _build_templates(mesh: Mesh, shape: ShapeConfig,
+                     progress: Callable[[int, int], None] | None = None) -> ContourTemplates:
+    return build_templates(mesh, shape.views, shape.size, shape.points, progress=progress)
 
 
 def _store_features(refs: ReferenceSet, matcher_name: str, feats: dict, xyzs: dict) -> None:

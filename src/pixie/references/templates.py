@@ -20,6 +20,7 @@ from __future__ import annotations
 import dataclasses
 import time
 from dataclasses import dataclass
+from typing import Callable
 
 import cv2
 import numpy as np
@@ -268,7 +269,8 @@ def view_points(depth: np.ndarray, normals: np.ndarray, K: np.ndarray, T: np.nda
 
 def build_templates(mesh: Mesh, n_views: int = 300, size: int = 128, n_points: int = 96, crease_share: float = 0.35,
                     n_outline: int = 128, focal_factor: float = 4.0, renderer: Renderer | None = None,
-                    crease_deg: float = 35.0) -> ContourTemplates:
+                    crease_deg: float = 35.0,
+                    progress: Callable[[int, int], None] | None = None) -> ContourTemplates:
     """Render depth/normals of ``n_views`` roll-0 views at ``size`` px and extract their contour points.
 
     Parameters
@@ -290,6 +292,8 @@ def build_templates(mesh: Mesh, n_views: int = 300, size: int = 128, n_points: i
     xyz = np.zeros((V, N, 3), np.float32)
     outline = np.zeros((V, n_outline, 2), np.float32)
     for i, T in enumerate(poses):
+        if progress is not None:
+            progress(i + 1, len(poses))
         r = renderer.render(T, K, size, size)
         vp = view_points(r.depth, r.normals, K, T, N, crease_share, n_outline, crease_deg)
         k = len(vp["kind"])
