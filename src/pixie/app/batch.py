@@ -205,7 +205,8 @@ def _setup(args: dict) -> dict:
 
     cfg = PixieConfig.from_dict(args["config"])
     cfg.preset = args.get("preset")
-    return {"est": {}, "renderer": {}, "overlays": args["overlays"], "cfg": cfg, "notes": []}
+    return {"est": {}, "renderer": {}, "overlays": args["overlays"], "cfg": cfg, "notes": [],
+            "stage": args.get("stage")}  # serial runs: shows the running stage on the progress bar
 
 
 def _estimator(state: dict, refs_path: str) -> PoseEstimator:
@@ -232,7 +233,7 @@ def _process(state: dict, job: dict) -> dict:
             image = load_image(job["image"])
             mask = load_mask(job["mask"]) if job["mask"] else None
             K = np.asarray(job["K"], np.float64)
-            res = est.estimate(image, K, bbox=job["bbox"], mask=mask)
+            res = est.estimate(image, K, bbox=job["bbox"], mask=mask, progress=state.get("stage"))
         rec["result"] = annotate(res, est, state["cfg"], notes.extend(seen.items)).to_dict()
         if job.get("gt_pose") and res.T_cam_from_obj is not None:
             rec["result"]["gt_error"] = pose_error(res.T_cam_from_obj, read_pose_file(job["gt_pose"]), est.refs.mesh.vertices)
@@ -333,8 +334,10 @@ def run_batch(items: list[BatchItem], out_dir: str | Path, config: PixieConfig, 
         if bar is not None:
             bar.update(1)
 
-    spec = WorkerSpec(_setup, _process, {"config": config.to_dict(), "preset": config.preset,
-                                         "overlays": overlays}, threads)
+    args = {"config": config.to_dict(), "preset": config.preset, "overlays": overlays}
+    if bar is not None and not use_ray:  # in this process: the bar says which stage of which image is running
+        args["stage"] = lambda stage: bar.set_postfix_str(stage, refresh=True)
+    spec = WorkerSpec(_setup, _process, args, threads)
     try:
         if use_ray:
             n_workers = ray_map(spec, todo, on_result, workers=workers, address=address)
