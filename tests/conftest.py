@@ -317,6 +317,34 @@ def check_result(res):
     json.dumps(res.to_dict())  # serialisable
 
 
+# ------------------------------------------------------------------ a tiny part on disk (bad-input / crash tests)
+def write_tiny_part(d: Path, proc_trimesh) -> dict:
+    """Into folder ``d``: part.ply (the procedural part), photo.png and mask.png (it rendered at 320x240, f = 300),
+    refs.npz (a 10-view, 2-roll, 64 px set with SIFT features). Returns their paths, the box [x, y, w, h] and T."""
+    from pixie.config import RefsConfig
+    from pixie.geometry.camera import make_K
+    from pixie.geometry.mesh import load_mesh
+    from pixie.matching import get_matcher
+    from pixie.references.set import build_reference_set
+    from pixie.references.store import save_reference_set
+
+    proc_trimesh.export(d / "part.ply")
+    mesh = load_mesh(d / "part.ply")
+    T = make_T(cv2.Rodrigues(np.array([0.6, -0.4, 0.3]))[0], np.zeros(3))
+    T[:3, 3] = [5.0, -3.0, 500.0] - T[:3, :3] @ mesh.center
+    r = Renderer(mesh).render(T, make_K(300, 300, 159.5, 119.5), 240, 320)
+    shade = np.where(r.mask, 60 + 180 * np.abs(r.normals[..., 2]), 20).astype(np.uint8)
+    cv2.imwrite(str(d / "photo.png"), np.repeat(shade[..., None], 3, axis=2))
+    cv2.imwrite(str(d / "mask.png"), r.mask.astype(np.uint8) * 255)
+    ys, xs = np.nonzero(r.mask)
+    box = [int(xs.min()), int(ys.min()), int(xs.max() - xs.min() + 1), int(ys.max() - ys.min() + 1)]
+    cfg = RefsConfig(n_fibonacci=4, rotations=2, size=64, encodings=["shade3_edges"])
+    refs = build_reference_set(mesh, cfg, matcher=get_matcher("sift-nn", max_keypoints=128, window=16.0))
+    save_reference_set(refs, d / "refs.npz")
+    return {"dir": d, "mesh": d / "part.ply", "photo": d / "photo.png", "mask": d / "mask.png",
+            "refs": d / "refs.npz", "box": box, "T": T}
+
+
 # ------------------------------------------------------------------ the command line in this process
 def run_cli(*argv) -> tuple[int, str, str]:
     """Run ``pixie ARGV`` in this process; (exit code, stdout, stderr) (``from conftest import run_cli``)."""

@@ -9,7 +9,6 @@ whole file runs in seconds.
 
 from __future__ import annotations
 
-import io
 import json
 import os
 import signal
@@ -18,41 +17,22 @@ import subprocess
 import sys
 import time
 import zlib
-from contextlib import redirect_stderr, redirect_stdout
 from pathlib import Path
 
 import cv2
 import numpy as np
 import pytest
 
-from pixie.app.cli import main
+from conftest import assert_cli_error, run_cli, write_tiny_part
+
 
 SRC = Path(__file__).resolve().parents[1] / "src"
 W, H = 320, 240
 K_TEXT = "300,300,159.5,119.5"
 
 
-def cli(*argv) -> tuple[int, str, str]:
-    """Run ``pixie ARGV`` in this process; (exit code, stdout, stderr)."""
-    out, err = io.StringIO(), io.StringIO()
-    with redirect_stdout(out), redirect_stderr(err):
-        try:
-            rc = main([str(a) for a in argv])
-        except SystemExit as exc:  # argparse's own usage errors
-            rc = exc.code
-    return rc, out.getvalue(), err.getvalue()
-
-
-def assert_error(res: tuple[int, str, str], *needles: str, rc: int = 2) -> str:
-    """The command failed with exit ``rc`` and ONE line on stderr containing every needle (case-insensitive)."""
-    code, out, err = res
-    assert "Traceback" not in err + out, err
-    assert code == rc, (code, out, err)
-    lines = [ln for ln in err.strip().splitlines() if ln.startswith("pixie: error")]
-    assert len(lines) == 1, err
-    for n in needles:
-        assert n.lower() in lines[0].lower(), (n, lines[0])
-    return lines[0]
+cli = run_cli  # conftest: the command line in this process, (exit code, stdout, stderr)
+assert_error = assert_cli_error  # conftest: exit 2 and ONE `pixie: error` line naming every needle
 
 
 # ------------------------------------------------------------------------------------------ fixtures
@@ -60,33 +40,11 @@ def assert_error(res: tuple[int, str, str], *needles: str, rc: int = 2) -> str:
 
 @pytest.fixture(scope="module")
 def work(tmp_path_factory, proc_trimesh):
-    """Folder with part.ply (the procedural part), photo.png (it rendered at 320x240) and refs.npz."""
-    from pixie.geometry.camera import make_K, make_T
-    from pixie.config import RefsConfig
-    from pixie.matching import get_matcher
-    from pixie.geometry.mesh import load_mesh
-    from pixie.references.set import build_reference_set
-    from pixie.references.store import save_reference_set
-    from pixie.geometry.render import Renderer
-
+    """Folder with part.ply (the procedural part), photo.png (it rendered at 320x240), mask.png and refs.npz."""
     d = tmp_path_factory.mktemp("bad_inputs")
-    proc_trimesh.export(d / "part.ply")
-    mesh = load_mesh(d / "part.ply")
-    T = make_T(cv2.Rodrigues(np.array([0.6, -0.4, 0.3]))[0], np.zeros(3))
-    T[:3, 3] = [5.0, -3.0, 500.0] - T[:3, :3] @ mesh.center
-    r = Renderer(mesh).render(T, make_K(300, 300, 159.5, 119.5), H, W)
-    shade = np.where(r.mask, 60 + 180 * np.abs(r.normals[..., 2]), 20).astype(np.uint8)
-    photo = np.repeat(shade[..., None], 3, axis=2)
-    cv2.imwrite(str(d / "photo.png"), photo)
-    cv2.imwrite(str(d / "mask.png"), r.mask.astype(np.uint8) * 255)
-    ys, xs = np.nonzero(r.mask)
-    box = f"{xs.min()},{ys.min()},{xs.max() - xs.min() + 1},{ys.max() - ys.min() + 1}"
-    cfg = RefsConfig(n_fibonacci=4, rotations=2, size=64, encodings=["shade3_edges"])
-    refs = build_reference_set(mesh, cfg, matcher=get_matcher("sift-nn", max_keypoints=128, window=16.0))
-    save_reference_set(refs, d / "refs.npz")
+    w = write_tiny_part(d, proc_trimesh)
     (d / "bad.txt").write_text("not a folder")
-    return {"dir": d, "mesh": d / "part.ply", "photo": d / "photo.png", "mask": d / "mask.png",
-            "refs": d / "refs.npz", "box": box, "T": T, "file": d / "bad.txt"}
+    return {**w, "box": ",".join(str(v) for v in w["box"]), "file": d / "bad.txt"}
 
 
 SMALL = ["--views", "8", "--rotations", "1", "--size", "32", "--matcher", "none", "--set", "refs.encodings=[depth]"]

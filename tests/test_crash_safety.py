@@ -22,10 +22,9 @@ import sys
 import time
 from pathlib import Path
 
-import cv2
 import numpy as np
 import pytest
-from conftest import assert_cli_error, run_cli
+from conftest import assert_cli_error, run_cli, write_tiny_part
 
 SRC = Path(__file__).resolve().parents[1] / "src"
 K_TEXT = "300,300,159.5,119.5"
@@ -38,29 +37,8 @@ DEAD_PID = 2 ** 22 + 12345  # above Linux's pid_max: never a running process
 
 @pytest.fixture(scope="module")
 def part(tmp_path_factory, proc_trimesh):
-    """part.ply, photo.png (the part rendered at 320x240), its box and a tiny refs.npz."""
-    from pixie.config import RefsConfig
-    from pixie.geometry.camera import make_K, make_T
-    from pixie.geometry.mesh import load_mesh
-    from pixie.geometry.render import Renderer
-    from pixie.matching import get_matcher
-    from pixie.references.set import build_reference_set
-    from pixie.references.store import save_reference_set
-
-    d = tmp_path_factory.mktemp("crash_safety")
-    proc_trimesh.export(d / "part.ply")
-    mesh = load_mesh(d / "part.ply")
-    T = make_T(cv2.Rodrigues(np.array([0.6, -0.4, 0.3]))[0], np.zeros(3))
-    T[:3, 3] = [5.0, -3.0, 500.0] - T[:3, :3] @ mesh.center
-    r = Renderer(mesh).render(T, make_K(300, 300, 159.5, 119.5), 240, 320)
-    shade = np.where(r.mask, 60 + 180 * np.abs(r.normals[..., 2]), 20).astype(np.uint8)
-    cv2.imwrite(str(d / "photo.png"), np.repeat(shade[..., None], 3, axis=2))
-    ys, xs = np.nonzero(r.mask)
-    box = [int(xs.min()), int(ys.min()), int(xs.max() - xs.min() + 1), int(ys.max() - ys.min() + 1)]
-    cfg = RefsConfig(n_fibonacci=4, rotations=2, size=64, encodings=["shade3_edges"])
-    refs = build_reference_set(mesh, cfg, matcher=get_matcher("sift-nn", max_keypoints=128, window=16.0))
-    save_reference_set(refs, d / "refs.npz")
-    return {"dir": d, "mesh": d / "part.ply", "photo": d / "photo.png", "refs": d / "refs.npz", "box": box, "T": T}
+    """part.ply, photo.png (the part rendered at 320x240), its box and a tiny refs.npz (conftest.write_tiny_part)."""
+    return write_tiny_part(tmp_path_factory.mktemp("crash_safety"), proc_trimesh)
 
 
 @pytest.fixture()

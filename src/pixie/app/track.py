@@ -26,7 +26,7 @@ from pixie.errors import PixieError
 from pixie.geometry.camera import make_T, validate_pose
 from pixie.pipeline.estimator import PoseEstimator
 from pixie.pose.results import PoseResult
-from pixie.pose.solve import projected_box
+from pixie.pose.solve import projected_box_in_image
 
 __all__ = ["Frame", "TrackStep", "Tracker", "track", "read_pose_file", "frame_paths"]
 
@@ -55,10 +55,8 @@ class TrackStep:
 
 def _box_of(est: PoseEstimator, T: np.ndarray, K: np.ndarray, shape: tuple[int, int]) -> tuple[float, ...] | None:
     """The projected box (x, y, w, h) of pose ``T``, clipped to the image; None when it leaves the image."""
-    x0, y0, x1, y1 = projected_box(T, K, est.box_points)
-    h, w = shape
-    x0, y0, x1, y1 = max(x0, 0.0), max(y0, 0.0), min(x1, w), min(y1, h)
-    return None if x1 - x0 < 2 or y1 - y0 < 2 else (x0, y0, x1 - x0, y1 - y0)
+    b = projected_box_in_image(T, K, est.box_points, shape)
+    return None if b is None else (b[0], b[1], b[2] - b[0], b[3] - b[1])
 
 
 class Tracker:

@@ -59,6 +59,7 @@ from pixie.pose.solve import (
     lift,
     pair_rank_score,
     projected_box,
+    projected_box_in_image,
     solve_pnp_ransac,
 )
 from pixie.pose.plausibility import pose_contradictions, pose_warnings
@@ -270,23 +271,21 @@ class PoseEstimator:
             box = check_bbox(bbox if bbox is not None else bbox_from_mask(mask), image.shape[:2])
         else:
             box_source = "prior"
-            x0, y0, x1, y1 = projected_box(T_init, K, self.box_points)
-            m = (ac.prior_margin if margin is None else margin) * max(x1 - x0, y1 - y0)
-            h, w = image.shape[:2]
-            xa, ya, xb, yb = max(x0 - m, 0.0), max(y0 - m, 0.0), min(x1 + m, w), min(y1 + m, h)
-            if xb - xa < 2 or yb - ya < 2:
+            grown = projected_box_in_image(T_init, K, self.box_points, image.shape,
+                                           ac.prior_margin if margin is None else margin)
+            if grown is None:
+                h, w = image.shape[:2]
                 raise ImageError("the init pose projects the object outside the image: nothing to refine "
-                                 f"(its box {np.round([x0, y0, x1, y1], 1).tolist()} in a {w}x{h} image)")
-            box = check_bbox([xa, ya, xb - xa, yb - ya], image.shape[:2])
+                                 f"(its box {np.round(projected_box(T_init, K, self.box_points), 1).tolist()} in a "
+                                 f"{w}x{h} image)")
+            box = check_bbox([grown[0], grown[1], grown[2] - grown[0], grown[3] - grown[1]], image.shape[:2])
         crop = square_crop(image, box, self.cfg.query.crop_pad, self.refs.size, 0.0, mask)
         q = Query(image, K, box, mask, [crop], [], box_source=box_source)
         t = time.perf_counter()
-        ren = self._align_renderer or Renderer(self.refs.mesh, smooth_normals=True)
-        pe = photo_edges(image, K, box, mask, object_px=ac.object_px, canny_low=ac.canny_low, canny_high=ac.canny_high)
-        q.photo_edges = pe
-        res = align(ren, pe, T_init, schedule=tuple(ac.schedule), iters=ac.iters, crease_weight=ac.crease_weight,
-                    rot_prior=ac.rot_prior, fit_px=ac.fit_px, search=ac.search, min_contrast=ac.min_contrast,
-                    w_box=ac.w_box if box_source != "prior" else 0.0, hull=self.box_points)
+        ren, pe, kw = self._align_setup(q)
+        if box_source == "prior":  # the grown prior box is a search region, not the object's sides
+            kw["w_box"] = 0.0
+        res = align(ren, pe, T_init, **kw)
         T = res.T_cam_from_obj
         hyp = Hypothesis(T_cam_from_obj=T, score=res.fit.share, n_inliers=0, n_matches=0, view=-1, roll=-1,
                          rot_to_ref_deg=0.0, box_iou=box_iou(projected_box(T, K, self.box_points), box), source="prior")
@@ -294,10 +293,8 @@ class PoseEstimator:
         hyp.terms = {"fit": res.fit.share, "fit_silhouette": res.fit.silhouette_share, "fit_visible": res.fit.visible,
                      "fit_dist": res.fit.mean_dist, "align_iterations": float(res.iterations)}
         if box_source == "prior":  # the search region was the prior's grown box: record the refined pose's own box
-            pb = projected_box(T, K, self.box_points)
-            h, w = image.shape[:2]
-            pb = np.array([max(pb[0], 0.0), max(pb[1], 0.0), min(pb[2], w), min(pb[3], h)])
-            if pb[2] - pb[0] >= 2 and pb[3] - pb[1] >= 2:
+            pb = projected_box_in_image(T, K, self.box_points, image.shape)
+            if pb is not None:
                 q.box = pb
         timings = {"align": time.perf_counter() - t, "total": time.perf_counter() - t_all}
         return self.record_inputs(self.result([hyp], timings, q), q)
@@ -563,6 +560,18 @@ class PoseEstimator:
             timings["region_refine"] = time.perf_counter() - t
         return pool
 
+    def _align_setup(self, q: Query) -> tuple[Renderer, object, dict]:
+        """What the edge alignment of query ``q`` needs (``config.align``): the renderer, the photo's edges (also
+        kept as ``q.photo_edges``) and the keywords of :func:`pixie.cues.edge_align.align`."""
+        ac = self.cfg.align
+        ren = self._align_renderer or Renderer(self.refs.mesh, smooth_normals=True)
+        q.photo_edges = photo_edges(q.image, q.K, q.box, q.mask, object_px=ac.object_px, canny_low=ac.canny_low,
+                                    canny_high=ac.canny_high)
+        kw = dict(schedule=tuple(ac.schedule), iters=ac.iters, crease_weight=ac.crease_weight, rot_prior=ac.rot_prior,
+                  fit_px=ac.fit_px, search=ac.search, min_contrast=ac.min_contrast, w_box=ac.w_box,
+                  hull=self.box_points)
+        return ren, q.photo_edges, kw
+
     def align_stage(self, q: Query, hyps: list[Hypothesis]) -> list[Hypothesis]:
         """Edge-based 6-DoF alignment (``config.align``, :mod:`pixie.cues.edge_align`) of the best distinct hypotheses and
         the flip twins of the best few, then selection on the aligned fit.
@@ -572,17 +581,11 @@ class PoseEstimator:
         ``w_fit * terms['fit']``; every other hypothesis follows them in its previous order.
         """
         ac = self.cfg.align
-        ren = self._align_renderer or Renderer(self.refs.mesh, smooth_normals=True)
-        pe = photo_edges(q.image, q.K, q.box, q.mask, object_px=ac.object_px, canny_low=ac.canny_low,
-                         canny_high=ac.canny_high)
-        q.photo_edges = pe
+        ren, pe, kw = self._align_setup(q)
         starts = self.distinct(hyps, ac.hypotheses)
         jobs = [(h, h.T_cam_from_obj, "aligned") for h in starts]
         for h in starts[: ac.flips]:
             jobs += [(h, T, "flip") for T in flip_twins(h.T_cam_from_obj, self.refs.mesh.center)]
-        kw = dict(schedule=tuple(ac.schedule), iters=ac.iters, crease_weight=ac.crease_weight, rot_prior=ac.rot_prior,
-                  fit_px=ac.fit_px, search=ac.search, min_contrast=ac.min_contrast, w_box=ac.w_box,
-                  hull=self.box_points)
         new: list[Hypothesis] = []
         for h, T0, src in jobs:
             res = align(ren, pe, T0, **kw)

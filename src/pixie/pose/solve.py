@@ -138,6 +138,17 @@ def projected_box(T: np.ndarray, K: np.ndarray, points: np.ndarray) -> np.ndarra
     return np.concatenate([uv.min(axis=0), uv.max(axis=0)])
 
 
+def projected_box_in_image(T: np.ndarray, K: np.ndarray, points: np.ndarray, image_shape: tuple[int, int],
+                           grow: float = 0.0) -> np.ndarray | None:
+    """:func:`projected_box` grown by ``grow`` x its longer side on every side and clipped to the image
+    (``image_shape`` = (H, W)); None when less than 2 px of it (either way) lies inside."""
+    x0, y0, x1, y1 = projected_box(T, K, points)
+    m = grow * max(x1 - x0, y1 - y0)
+    h, w = image_shape[:2]
+    b = np.array([max(x0 - m, 0.0), max(y0 - m, 0.0), min(x1 + m, w), min(y1 + m, h)])
+    return b if b[2] - b[0] >= 2 and b[3] - b[1] >= 2 else None
+
+
 def box_iou(a: np.ndarray, b: np.ndarray) -> float:
     """IoU of two (x0, y0, x1, y1) boxes."""
     iw = max(0.0, min(a[2], b[2]) - max(a[0], b[0]))

@@ -11,10 +11,11 @@ from dataclasses import dataclass
 import cv2
 import numpy as np
 
-from pixie.geometry.camera import make_T, rotation_angle_deg, transform_points, validate_K, validate_pose
-from pixie.geometry.mesh import Mesh, from_arrays
+from pixie.geometry.camera import make_T, validate_K, validate_pose
+from pixie.eval.pose_error import add, rotation_error_deg, translation_error
+from pixie.geometry.mesh import Mesh
 from pixie.geometry.render import Renderer
-from pixie.synth.photo import LightRig, Material, degrade, random_background, render_rgb
+from pixie.synth.photo import LightRig, Material, box_renderer, degrade, random_background, render_rgb
 
 __all__ = ["CheckScene", "BACKGROUNDS", "check_scene", "random_facing_pose", "pose_error"]
 
@@ -73,12 +74,9 @@ def check_scene(mesh: Mesh, K: np.ndarray, height: int, width: int, T: np.ndarra
     mat = Material.random(rng) if colour is None else Material(color=colour, roughness=0.5, specular=0.3)
     rens, poses, mats = [Renderer(mesh)], [T], [mat]
     if distractors:
-        import trimesh
-
         c = T[:3, :3] @ mesh.center + T[:3, 3]
         for _ in range(int(distractors)):
-            b = trimesh.creation.box(extents=rng.uniform(0.3, 0.8, 3) * mesh.diameter)
-            rens.append(Renderer(from_arrays(np.asarray(b.vertices), np.asarray(b.faces), name="distractor")))
+            rens.append(box_renderer(rng.uniform(0.3, 0.8, 3) * mesh.diameter))
             off = rng.normal(0.0, 0.6, 2) * mesh.diameter
             poses.append(make_T(cv2.Rodrigues(rng.normal(size=3))[0],
                                 c + np.array([off[0], off[1], rng.uniform(-0.3, 0.8) * mesh.diameter])))
@@ -101,7 +99,5 @@ def pose_error(T_est: np.ndarray, T_gt: np.ndarray, vertices: np.ndarray) -> dic
     v = np.asarray(vertices, np.float64)
     if len(v) > 5000:
         v = v[np.linspace(0, len(v) - 1, 5000).astype(int)]
-    add = float(np.linalg.norm(transform_points(T_est, v) - transform_points(T_gt, v), axis=1).mean())
-    return {"rot_deg": rotation_angle_deg(T_est[:3, :3], T_gt[:3, :3]),
-            "trans_mm": float(np.linalg.norm(T_est[:3, 3] - T_gt[:3, 3])),
-            "depth_pct": float(100 * abs(T_est[2, 3] - T_gt[2, 3]) / abs(T_gt[2, 3])), "add_mm": add}
+    return {"rot_deg": rotation_error_deg(T_est, T_gt), "trans_mm": translation_error(T_est, T_gt),
+            "depth_pct": float(100 * abs(T_est[2, 3] - T_gt[2, 3]) / abs(T_gt[2, 3])), "add_mm": add(T_est, T_gt, v)}

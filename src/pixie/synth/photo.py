@@ -30,6 +30,7 @@ import cv2
 import numpy as np
 
 from pixie.geometry.camera import validate_K, validate_pose
+from pixie.geometry.mesh import from_arrays
 from pixie.geometry.render import RenderResult, Renderer, composite
 
 __all__ = [
@@ -42,6 +43,7 @@ __all__ = [
     "random_color",
     "degrade",
     "shadow_mask",
+    "box_renderer",
 ]
 
 
@@ -190,6 +192,14 @@ class PhotoResult:
     def visib_fract(self, i: int) -> float:
         n = int(self.masks[i].sum())
         return float(self.masks_visib[i].sum()) / n if n else 0.0
+
+
+def box_renderer(extents, name: str = "distractor") -> Renderer:
+    """A renderer of a box with these ``extents`` (mm), centred at its origin: clutter and occluders of scenes."""
+    import trimesh
+
+    b = trimesh.creation.box(extents=np.asarray(extents, np.float64))
+    return Renderer(from_arrays(np.asarray(b.vertices), np.asarray(b.faces), name=name))
 
 
 # --------------------------------------------------------------------------- shadows

@@ -12,9 +12,9 @@ import cv2
 import numpy as np
 
 from pixie.geometry.camera import make_T
-from pixie.geometry.mesh import Mesh, from_arrays
+from pixie.geometry.mesh import Mesh
 from pixie.geometry.render import Renderer
-from pixie.synth.photo import LightRig, Material, random_background, render_rgb
+from pixie.synth.photo import LightRig, Material, box_renderer, random_background, render_rgb
 
 __all__ = ["Sequence", "smooth_sequence"]
 
@@ -42,8 +42,6 @@ def smooth_sequence(mesh: Mesh, K: np.ndarray, height: int, width: int, n_frames
     (``px_per_frame``) and slowly approaching/receding (±10 % depth over the sequence), over one textured /
     cluttered background, one material and one light rig (fixed over the sequence, as for a real camera).
     ``distractors`` static boxes sit in the scene (LM-O-like clutter, occluding the object at times)."""
-    import trimesh
-
     rng = np.random.default_rng(seed)
     ren = Renderer(mesh)
     T0 = _random_pose(mesh, rng, K, distance_factor)
@@ -57,9 +55,7 @@ def smooth_sequence(mesh: Mesh, K: np.ndarray, height: int, width: int, n_frames
     others, other_poses, other_mats = [], [], []
     f_px = K[0, 0] * mesh.diameter / T0[2, 3]  # the object's size in the image, px
     for j in range(distractors):
-        ext = rng.uniform(0.3, 0.7, 3) * mesh.diameter
-        b = trimesh.creation.box(extents=ext)
-        others.append(Renderer(from_arrays(np.asarray(b.vertices), np.asarray(b.faces), name="distractor")))
+        others.append(box_renderer(rng.uniform(0.3, 0.7, 3) * mesh.diameter))
         # the first one in front, beside the path (covers a part of the object at times), the others behind it
         z = T0[2, 3] * (0.75 if j == 0 else rng.uniform(1.2, 1.5))
         side = rng.choice([-1.0, 1.0])
