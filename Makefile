@@ -22,12 +22,17 @@ setup: $(STAMP)
 demo: $(STAMP)
 	$(BIN)/python -m pixie demo
 
+# One pytest process per core (TEST_WORKERS, 2 here), one thread each; every test file runs whole in one worker
+# (--dist loadfile), so its fixtures are built once; the longest files start first (tests/conftest.py).
+# TEST_WORKERS=0 runs everything in this process.
+TEST_WORKERS ?= 2
+
 test: $(STAMP)
-	$(BIN)/python -m pytest -q
+	$(BIN)/python -m pytest -q -n $(TEST_WORKERS) --dist loadfile
 
 # The inner loop: everything but the tests marked slow (the full end-to-end runs).
 test-fast: $(STAMP)
-	$(BIN)/python -m pytest -q -m "not slow"
+	$(BIN)/python -m pytest -q -n $(TEST_WORKERS) --dist loadfile -m "not slow"
 
 lint: $(STAMP)
 	$(BIN)/ruff check src tests bench

@@ -8,19 +8,24 @@ from __future__ import annotations
 
 import contextlib
 import json
+import os
 from pathlib import Path
 
-import cv2
-import numpy as np
-import pytest
-import trimesh
+from pixie.threads import configure_env  # standard library only: before numpy, torch and OpenCV load
 
-from pixie.geometry.camera import make_T, validate_pose
-from pixie.geometry.mesh import from_arrays
-from pixie.geometry.render import Renderer, composite
+configure_env(1)  # one thread per test process: `make test` runs one process per core (pytest-xdist)
 
-from pixie.synth.e2e import procedural_part
-from pixie.weights import shared_root
+import cv2  # noqa: E402
+import numpy as np  # noqa: E402
+import pytest  # noqa: E402
+import trimesh  # noqa: E402
+
+from pixie.geometry.camera import make_T, validate_pose  # noqa: E402
+from pixie.geometry.mesh import from_arrays  # noqa: E402
+from pixie.geometry.render import Renderer, composite  # noqa: E402
+
+from pixie.synth.e2e import procedural_part  # noqa: E402
+from pixie.weights import shared_root  # noqa: E402
 
 _SHARED = shared_root() or Path("/nonexistent-shared")  # $PIXIE_SHARED, else ../shared beside the repository
 LMO_DIR = _SHARED / "data/lmo_dev/lmo"
@@ -29,6 +34,20 @@ WEIGHTS_DIR = _SHARED / "weights"
 needs_lmo = pytest.mark.skipif(
     not (LMO_DIR / "models").is_dir(), reason=f"LM-O development data not found at {LMO_DIR}"
 )
+
+
+# ------------------------------------------------------------------------------------------- scheduling
+
+# Seconds each heavy test file took (one thread, 2-core machine, session 9): `make test` runs the files in this
+# order, longest first, so that pytest-xdist's whole-file workers (``--dist loadfile``) finish together.
+FILE_SECONDS = {"test_pipeline": 240, "test_crash_safety": 125, "test_bad_inputs": 90, "test_estimator": 70,
+                "test_batch": 60, "test_cluster": 55, "test_batch_objects": 40, "test_cli": 40, "test_runner": 25,
+                "test_edge_align": 25, "test_track": 20, "test_api": 20, "test_render_cmd": 12}
+
+
+def pytest_collection_modifyitems(config, items):
+    """Longest test files first (stable: the order inside a file, and of the other files, is kept)."""
+    items.sort(key=lambda item: -FILE_SECONDS.get(item.path.stem, 0))
 
 
 # ------------------------------------------------------------------------------------------- data
@@ -201,17 +220,30 @@ def build_refs():
 
 
 @pytest.fixture(scope="session")
-def query_e2e(proc_mesh, matcher_name, build_refs):
-    """(refs, config, matcher) of the procedural part on the demo's and the README's LM-O path: the end-to-end
-    reference set with roll-0 features only, the query crop rotated (``match.in_plane=query``); built once."""
+def query_e2e(proc_mesh, matcher_name, build_refs, tmp_path_factory):
+    """(refs, config, matcher) of the procedural part on the shipped default path (the demo's and the README's
+    LM-O path): roll-0 reference features, the query crop rotated (``match.in_plane=query``).
+
+    Built once per test run: under pytest-xdist the first worker to need it saves it into the run's shared
+    temporary folder (a file lock in between) and every worker, the builder too, uses the saved set, so results do
+    not depend on which worker built it. Without xdist it is built in this process and used as built."""
     from pixie.app.runner import make_matcher
+    from pixie.references.store import load_reference_set, save_reference_set
     from pixie.synth.e2e import e2e_config
 
     cfg = e2e_config(matcher_name)
     cfg.refs.feature_rolls = "first"
     cfg.match.in_plane = "query"
     matcher = make_matcher(cfg)
-    return build_refs(proc_mesh, cfg.refs, matcher=matcher), cfg, matcher
+    if not os.environ.get("PYTEST_XDIST_WORKER"):
+        return build_refs(proc_mesh, cfg.refs, matcher=matcher), cfg, matcher
+    from filelock import FileLock  # torch's own dependency
+
+    path = tmp_path_factory.getbasetemp().parent / f"query_e2e-{matcher_name}.npz"  # this run's, shared by workers
+    with FileLock(str(path) + ".lock"):
+        if not path.is_file():
+            save_reference_set(build_refs(proc_mesh, cfg.refs, matcher=matcher), path)
+    return load_reference_set(path), cfg, matcher
 
 
 # ------------------------------------------------------------------------------ a tiny BOP dataset

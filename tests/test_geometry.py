@@ -482,6 +482,16 @@ def test_point_cloud_ply_is_named_as_one(tmp_path):
     assert "no vertices" not in msg
 
 
+@pytest.mark.parametrize("n", [1, 2, 7, 500, 2600])
+def test_diameter_is_the_largest_pairwise_distance(n):
+    """Hand check against every pair (the Gram-matrix shortcut then an exact re-measure must agree exactly)."""
+    from pixie.geometry.mesh import _diameter
+
+    p = np.random.default_rng(n).normal(size=(n, 3)) * [120.0, 30.0, 4.0] + 1e4  # far from the origin
+    brute = max(float(np.linalg.norm(p[i:i + 256, None] - p[None], axis=-1).max()) for i in range(0, n, 256))
+    assert _diameter(p) == brute
+
+
 def test_from_arrays_validation():
     v = np.array([[0, 0, 0], [10, 0, 0], [10, 10, 0], [0, 10, 0]], float)
     quads = np.array([[0, 1, 2, 3]])

@@ -272,11 +272,39 @@ def test_save_load_roundtrip(refs_sift, saved_sift, proc_mesh):
     assert diff.mean() < 0.5 and np.mean(diff > 8) < 0.01
 
 
+def test_depth_and_normals_are_read_from_the_file_on_first_use(saved_sift, refs_plain, tmp_path):
+    """A load leaves depth and normals in the file; saving the loaded set writes them back bit for bit; reading
+    them after the file was replaced by another set is an error naming the file, not the other set's arrays."""
+    import shutil
+
+    path = tmp_path / "a.npz"
+    shutil.copy(saved_sift, path)
+    back = load_reference_set(path)
+    again = save_reference_set(back, tmp_path / "b.npz")
+    with np.load(path) as za, np.load(again) as zb:
+        for k in ("depth_q", "depth_lo", "depth_step", "normals_q"):
+            np.testing.assert_array_equal(za[k], zb[k], err_msg=k)
+    late = load_reference_set(path)
+    save_reference_set(refs_plain, path, force=True)  # another set replaces the file
+    with pytest.raises(ReferenceSetError, match="changed on disk"):
+        late.normals
+
+
 def test_load_without_mesh_uses_the_stored_one(saved_sift, proc_mesh):
     back = load_reference_set(saved_sift)
     np.testing.assert_allclose(back.mesh.vertices, proc_mesh.vertices)
     np.testing.assert_array_equal(back.mesh.faces, proc_mesh.faces)
     assert back.mesh.source_hash == proc_mesh.source_hash
+
+
+def test_stored_mesh_caches_equal_what_the_mesh_computes(saved_sift, proc_mesh):
+    """The set stores the hull and the renderer's float32 corner normals; both equal a fresh computation, so a
+    loaded set renders exactly like the mesh it was built from."""
+    back = load_reference_set(saved_sift)
+    assert back.mesh._corner_normals is not None and back.mesh._hull_vertices is not None
+    np.testing.assert_array_equal(back.mesh.corner_normals(), proc_mesh.corner_normals().astype(np.float32))
+    np.testing.assert_array_equal(back.mesh.hull_vertices, proc_mesh.hull_vertices)
+    assert back.mesh.diameter == proc_mesh.diameter
 
 
 def test_save_keeps_the_exact_name_and_creates_folders(refs_plain, tmp_path):

@@ -8,11 +8,12 @@ from __future__ import annotations
 
 import sys
 
-from pixie.threads import configure_env, threads_from_argv
+from pixie.threads import configure_env, imports_without_gc, threads_from_argv
 
 configure_env(threads_from_argv(sys.argv[1:]))
 
-from pixie.app.cli import main  # noqa: E402  (after the thread environment is set)
+with imports_without_gc():  # torch + pixie: ~0.25 s less start-up (pixie.threads)
+    from pixie.app.cli import main  # noqa: E402  (after the thread environment is set)
 
 __all__ = ["main"]
 

@@ -81,7 +81,7 @@ class Mesh:
     def diameter(self) -> float:
         """Largest distance between two vertices (exact on the convex hull), mm."""
         if self._diameter is None:
-            self._diameter = _diameter(self.vertices)
+            self._diameter = _diameter(self.hull_vertices)  # the hull's (stored in reference sets): no second qhull
         return self._diameter
 
     @property
@@ -132,13 +132,19 @@ def _hull_points(vertices: np.ndarray) -> np.ndarray:
         return vertices
 
 
-def _diameter(vertices: np.ndarray) -> float:
-    pts = _hull_points(vertices)
-    best = 0.0
-    for i in range(0, len(pts), 2048):
-        d = np.linalg.norm(pts[i : i + 2048, None, :] - pts[None, :, :], axis=-1)
-        best = max(best, float(d.max()))
-    return best
+def _diameter(pts: np.ndarray) -> float:
+    """Largest pairwise distance of ``pts`` (N, 3): pass the convex-hull vertices, the only candidates.
+
+    Squared distances come from the Gram matrix (one BLAS product per block, no (N, N, 3) temporary); the
+    rows whose maximum is within round-off of the largest are then measured exactly.
+    """
+    p = np.asarray(pts, dtype=np.float64)
+    p = p - p.mean(axis=0)
+    sq = (p * p).sum(axis=1)
+    row_max = np.concatenate([(sq[i : i + 2048, None] + sq[None, :] - 2.0 * p[i : i + 2048] @ p.T).max(axis=1)
+                              for i in range(0, len(p), 2048)])
+    rows = np.flatnonzero(row_max >= row_max.max() - 1e-6 * max(float(row_max.max()), 1.0))
+    return float(np.linalg.norm(p[rows, None, :] - p[None, :, :], axis=-1).max())
 
 
 def from_arrays(vertices: np.ndarray, faces: np.ndarray, name: str = "mesh", units: str = "mm") -> Mesh:
@@ -313,9 +319,11 @@ def _corner_normals(v: np.ndarray, f: np.ndarray, crease_deg: float) -> np.ndarr
     a = np.repeat(np.arange(len(sv)), size_of)  # every ordered pair of corners sharing a vertex
     b = np.repeat(start_of, size_of) + (np.arange(len(a)) - np.repeat(np.cumsum(size_of) - size_of, size_of))
     fa, fb = corner_f[order[a]], corner_f[order[b]]
-    keep = np.einsum("ij,ij->i", fn[fa], fn[fb]) >= np.cos(np.radians(crease_deg))
-    out = np.zeros((len(corner_v), 3))
-    np.add.at(out, order[a[keep]], fn_w[fb[keep]])
+    ga, gb = fn[fa], fn[fb]
+    keep = ga[:, 0] * gb[:, 0] + ga[:, 1] * gb[:, 1] + ga[:, 2] * gb[:, 2] >= np.cos(np.radians(crease_deg))
+    dst, src = order[a[keep]], fn_w[fb[keep]]
+    # np.bincount sums in input order, as np.add.at does (bit-identical), ~10x faster
+    out = np.stack([np.bincount(dst, weights=src[:, k], minlength=len(corner_v)) for k in range(3)], axis=1)
     norm = np.linalg.norm(out, axis=1, keepdims=True)
     out = np.where(norm > 0, out / np.maximum(norm, 1e-30), fn[corner_f])
     return out.reshape(len(f), 3, 3)

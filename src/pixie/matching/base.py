@@ -19,6 +19,7 @@ from torch import nn
 from pixie.features import Features
 from pixie.geometry.rotations import check_image, check_mask, in_mask
 from pixie.matching.checkpoints import WeightsArg, load_strict, load_weights
+from pixie.threads import imports_without_gc
 
 _FAR = 1.0e6  # keypoint coordinate of padding entries: outside every window
 
@@ -198,7 +199,8 @@ class Extractor:
 
 
 def _kornia_feature() -> Any:
-    import kornia.feature as KF
+    with imports_without_gc():  # kornia imports ~600 modules (pixie.threads)
+        import kornia.feature as KF
 
     return KF
 

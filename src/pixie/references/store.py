@@ -2,8 +2,9 @@
 
 A file holds a format version (``FORMAT_VERSION``), the mesh's content hash and the build config; a stale, foreign
 or corrupt file raises :class:`ReferenceSetError`. Depth and normals are stored quantised (uint16 steps per view,
-int8) and decoded on first access (:class:`pixie.references.set.ReferenceSet` fields), so a load does not pay for
-arrays inference never reads; the mesh's convex-hull vertices are stored too. Contour templates are stored under ``tpl/`` keys with their own version
+int8), left in the file by a load and read and decoded on first access (:class:`_FileArray`,
+:class:`pixie.references.set.ReferenceSet` fields), so a load does not pay for arrays inference never reads; the
+mesh's convex-hull vertices and the aligning renderer's corner normals are stored too. Contour templates are stored under ``tpl/`` keys with their own version
 (``TEMPLATES_VERSION``); :func:`ensure_templates` builds them for a set that lacks them (a file written before they
 were stored, or other ``shape.*`` settings) and saves them back into a writable file, once.
 """
@@ -100,6 +101,8 @@ def save_reference_set(refs: ReferenceSet, path: str | Path, force: bool = True)
         **(_stored_arrays(refs, "normals") or {"normals_q": np.round(refs.normals * 127.0).astype(np.int8)}),
         "mesh_vertices": refs.mesh.vertices, "mesh_faces": refs.mesh.faces.astype(np.int32),
         "mesh_hull": refs.mesh.hull_vertices,  # the estimator's box points: a convex hull (scipy) not redone per load
+        # the aligning renderer's smooth normals, float32 as the renderer uses them (~0.2 s per load otherwise)
+        "mesh_corner_normals": refs.mesh.corner_normals().astype(np.float32),
     }
     if refs.config.store_rotated_encodings:  # roll-0 encodings are re-derived from D and N on load
         for name, img in refs.encodings.items():
@@ -133,7 +136,9 @@ def load_reference_set(path: str | Path, mesh: Mesh | str | Path | None = None) 
         raise ReferenceSetError(f"reference set not found: {path} (build it with `pixie refs build MESH -o {path}`)")
     try:
         with np.load(path, allow_pickle=False) as z:
-            data = {k: z[k] for k in z.files}
+            # depth and normals (~2/3 of a load's decompression) are read on first access, never by inference
+            data = {k: z[k] for k in z.files if k not in _FROM_FILE}
+            data.update({k: _FileArray(path, k) for k in _FROM_FILE if k in z.files})
     except (zipfile.BadZipFile, zlib.error, ValueError, OSError, EOFError) as exc:
         raise ReferenceSetError(f"reference set {path} is corrupt or not a pixie file: {exc}") from exc
     if "meta" not in data:
@@ -156,6 +161,8 @@ def load_reference_set(path: str | Path, mesh: Mesh | str | Path | None = None) 
         stored_mesh.file_units = str(meta.get("mesh_file_units", "unknown"))  # not recorded by older sets
         if "mesh_hull" in data:  # sets written before it was stored compute it on first use
             stored_mesh._hull_vertices = data["mesh_hull"]
+        if "mesh_corner_normals" in data:  # likewise (float32: what the renderer reads)
+            stored_mesh._corner_normals = data["mesh_corner_normals"]
         cfg = RefsConfig(**meta["config"])
         _check_shapes(path, data, cfg)
         feats: dict[str, dict[str, np.ndarray]] = {}
@@ -204,6 +211,9 @@ def _check_shapes(path: Path, data: dict, cfg: RefsConfig) -> None:
             raise bad(k, v.shape, f"one entry per view ({V}) or per view and roll ({V * R})")
     if cfg.rotations != R:
         raise bad("poses", poses.shape, f"{cfg.rotations} rolls per view (its config's refs.rotations)")
+    F = len(data["mesh_faces"])
+    if "mesh_corner_normals" in data and data["mesh_corner_normals"].shape != (F, 3, 3):
+        raise bad("mesh_corner_normals", data["mesh_corner_normals"].shape, f"({F}, 3, 3): one normal per face corner")
 
 
 def _templates_from(data: dict) -> dict[str, np.ndarray] | None:
@@ -227,20 +237,58 @@ def _dequantise_depth(data: dict) -> np.ndarray:
     return np.where(q > 0, d, 0).astype(np.float32)
 
 
+class _FileArray:
+    """One array of a reference-set file, read on first use (picklable: the path, the key and the file's identity).
+
+    Its ``shape``, ``ndim`` and ``dtype`` come from the array's header alone. Reading it after the file was
+    replaced (another build wrote the same path) raises :class:`ReferenceSetError` instead of mixing two sets.
+    """
+
+    def __init__(self, path: Path, key: str):
+        self.path, self.key, self._stamp = Path(path), key, _stamp(path)
+        with zipfile.ZipFile(self.path) as zf, zf.open(key + ".npy") as fh:
+            fmt = np.lib.format
+            header = fmt.read_array_header_1_0 if fmt.read_magic(fh) == (1, 0) else fmt.read_array_header_2_0
+            self.shape, _, self.dtype = header(fh)
+        self.ndim = len(self.shape)
+
+    def read(self) -> np.ndarray:
+        if _stamp(self.path) != self._stamp:
+            raise ReferenceSetError(f"reference set {self.path} changed on disk since it was loaded: load it again")
+        try:
+            with np.load(self.path, allow_pickle=False) as z:
+                return z[self.key]
+        except (zipfile.BadZipFile, zlib.error, ValueError, OSError, EOFError, KeyError) as exc:
+            raise ReferenceSetError(f"reference set {self.path} is corrupt: {self.key}: {exc}") from exc
+
+
+def _stamp(path: Path) -> tuple[int, int, int]:
+    st = os.stat(path)
+    return st.st_ino, st.st_size, st.st_mtime_ns
+
+
+_FROM_FILE = ("depth_q", "normals_q")
+
+
 class _Lazy:
-    """``decode(data)`` deferred (picklable: a module-level function and a dict of arrays), with its shape."""
+    """``decode(data)`` deferred (picklable: a module-level function and a dict of arrays or :class:`_FileArray`),
+    with its shape."""
 
     def __init__(self, decode: Callable[[dict], np.ndarray], data: dict, shape: tuple):
         self.decode, self.data, self.shape = decode, {k: data[k] for k in _LAZY_KEYS[decode.__name__]}, tuple(shape)
 
+    def arrays(self) -> dict[str, np.ndarray]:
+        """The stored arrays, those left in the file read now."""
+        return {k: v.read() if isinstance(v, _FileArray) else v for k, v in self.data.items()}
+
     def __call__(self) -> np.ndarray:
-        return self.decode(self.data)
+        return self.decode(self.arrays())
 
 
 def _stored_arrays(refs: ReferenceSet, name: str) -> dict | None:
     """The arrays field ``name`` was loaded from, when it was not replaced since (saved back bit for bit)."""
     stored = _Decoded.stored(refs, name)
-    return dict(stored.data) if isinstance(stored, _Lazy) else None
+    return stored.arrays() if isinstance(stored, _Lazy) else None
 
 
 def _dequantise_normals(data: dict) -> np.ndarray:

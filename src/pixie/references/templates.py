@@ -33,6 +33,18 @@ from pixie.references.views import camera_distance, fibonacci_sphere, look_at, u
 SILHOUETTE, CREASE = 0, 1
 
 
+def _rotate2d(pts: np.ndarray, angles: np.ndarray) -> np.ndarray:
+    """Points (V, N, 2) turned by each angle (A,) radians: (V, A, N, 2) float32, ``[c -s; s c] @ p``.
+
+    Written out per coordinate (float32, as the points): a batched 2x2 product that an einsum over (V, A, N)
+    would run ~30x slower.
+    """
+    c = np.cos(angles).astype(np.float32)[None, :, None]
+    s = np.sin(angles).astype(np.float32)[None, :, None]
+    x, y = pts[:, None, :, 0].astype(np.float32), pts[:, None, :, 1].astype(np.float32)
+    return np.stack([c * x + (-s) * y, s * x + c * y], axis=-1)
+
+
 @dataclass
 class ContourTemplates:
     """Oriented contour points of V views (roll 0), N points each.
@@ -84,11 +96,9 @@ class ContourTemplates:
             offsets from the principal point
         """
         a = np.asarray(angles, np.float64).reshape(-1)
-        c, s = np.cos(a), np.sin(a)
-        R = np.stack([np.stack([c, -s], -1), np.stack([s, c], -1)], -2).astype(np.float32)  # (A, 2, 2)
-        xy = np.einsum("aij,vnj->vani", R, self.xy)
+        xy = _rotate2d(self.xy, a)
         ori = np.mod(self.ori[:, None, :] + a[None, :, None].astype(np.float32), np.pi).astype(np.float32)
-        out = np.einsum("aij,vmj->vami", R, self.outline)
+        out = _rotate2d(self.outline, a)
         # outline points are pixel centres: the silhouette covers half a pixel more on every side (pixie boxes
         # count pixels, w = last - first + 1)
         boxes = np.concatenate([out.min(axis=2) - 0.5, out.max(axis=2) + 0.5], axis=-1)
