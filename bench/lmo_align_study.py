@@ -34,7 +34,7 @@ from pixie.app.runner import make_matcher  # noqa: E402
 from pixie.pipeline.estimator import PoseEstimator, Query  # noqa: E402
 from pixie.pipeline.query import check_bbox  # noqa: E402
 
-TAG = "s7-1"
+TAG = "s9-1"  # s9: hypotheses keep their PnP inliers (support_uv, support_xyz)
 
 
 def stage1(ds, objects, targets, cfg, cache: Path) -> list[dict]:

@@ -335,6 +335,17 @@ def synthetic_bop(tmp_path_factory):
     return root, build_synthetic_bop(root)
 
 
+def tiny_run_config():
+    """SIFT (no weights) on a few small references, for runs over :func:`build_synthetic_bop`: fast (poses for 2 of
+    its 4 instances) and deterministic."""
+    from pixie.config import PixieConfig
+
+    return PixieConfig().apply_overrides([
+        "refs.n_fibonacci=10", "refs.rotations=4", "refs.size=128", "refs.encodings=[shade3_edges]",
+        "match.matcher=sift-nn", "refine.render_iters=0",
+    ])
+
+
 # ------------------------------------------------------------------ shared checks (``from conftest import ...``)
 TIMING_KEYS = ("extract", "match", "pnp", "total")
 

@@ -12,15 +12,12 @@ from pixie.eval.datasets import read_results_csv
 from pixie.geometry.mesh import load_mesh
 from pixie.app.runner import Journal, cached_reference_set, reference_cache_path, run_dataset
 
+from conftest import tiny_run_config
+
 pytestmark = pytest.mark.usefixtures("one_torch_thread")
 
 
-def tiny_config() -> PixieConfig:
-    """SIFT (no weights) on a few small references: fast (poses for 2 of the 4 instances), and deterministic."""
-    return PixieConfig().apply_overrides([
-        "refs.n_fibonacci=10", "refs.rotations=4", "refs.size=128", "refs.encodings=[shade3_edges]",
-        "match.matcher=sift-nn", "refine.render_iters=0",
-    ])
+tiny_config = tiny_run_config  # conftest: SIFT on a few small references
 
 
 def test_journal_resumes_and_skips_cut_lines(tmp_path):

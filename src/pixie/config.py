@@ -335,6 +335,10 @@ class AlignConfig(_Section):
     min_contrast: float = 0.0  # >0: silhouette points take only edges with this drop of the colour foreground posterior
     w_box: float = 1.0  # weight of each side of the given box (occlusion-aware: overshoot is robust) against the points
     crease_weight: float = 0.5
+    # a matcher hypothesis's PnP inliers as residuals too (interior points the contour does not constrain): their
+    # total weight is w_matches x the contour points', Tukey scale match_px (crop px); 0 = contour and box only
+    w_matches: float = 0.0
+    match_px: float = 10.0
     rot_prior: float = 0.0  # pull towards the start rotation (px² per point per rad²); 0 = free
     canny_low: float = 5.0  # Canny hysteresis thresholds, grey levels per photo pixel
     canny_high: float = 12.0
@@ -356,6 +360,7 @@ RANGES.update({"align.min_contrast": (0, 1, True), "align.w_box": (0, None, True
                "align.iters": (1, 100, True), "align.crease_weight": (0, 10, True), "align.rot_prior": (0, None, True),
                "align.canny_low": (0, None, True), "align.canny_high": (0, None, True), "align.fit_px": (0, 100, False),
                "align.w_fit": (0, None, True), "align.min_fit": (0, 1, True),
+               "align.w_matches": (0, None, True), "align.match_px": (0, 100, False),
                "align.prior_margin": (0, 4, True), "align.reset_fit": (0, 1, True),
                "align.reset_ratio": (0, 1, True)})
 

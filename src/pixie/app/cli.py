@@ -31,6 +31,7 @@ from pixie.references.encode import check_encodings
 from pixie.errors import ConfigError, DatasetError, PixieError, ReferenceSetError, UsageError
 from pixie.pipeline.estimator import PoseEstimator
 from pixie.eval import BopDataset, add_eval_arguments, main_eval, run_eval
+from pixie.eval.detections import load_detections
 from pixie.matching import available_matchers, backend_weights
 from pixie.threads import default_threads, set_threads
 from pixie.paths import not_an_input, output_dir, output_file, write_atomic
@@ -440,7 +441,9 @@ def cmd_run(args: argparse.Namespace) -> int:
     if args.refs_dir:
         output_dir(args.refs_dir, what="reference-set folder")
     out = Path(args.output)
-    not_an_input([out, args.refs_dir, *(out / n for n in RUN_OUTPUTS)], [args.dataset, args.config])
+    not_an_input([out, args.refs_dir, *(out / n for n in RUN_OUTPUTS)], [args.dataset, args.config, args.detections])
+    if args.detections:
+        load_detections(args.detections)  # a malformed file is refused before hours of work start
     ds = BopDataset(args.dataset)
     known = sorted({t.obj_id for t in ds.targets()})
     unknown = sorted(set(objects or []) - set(known))
@@ -453,7 +456,7 @@ def cmd_run(args: argparse.Namespace) -> int:
     t0 = time.perf_counter()
     csv = run_dataset(args.dataset, args.output, cfg, objects=objects, max_targets=args.max_targets,
                       refs_dir=args.refs_dir, threads=args.threads or 1, use_ray=args.ray, address=args.address,
-                      workers=args.workers)
+                      workers=args.workers, detections=args.detections)
     print(f"results -> {csv} ({time.perf_counter() - t0:.0f} s); scoring")
     # the run's targets (all, or the --objects / --max-targets subset): one that ended without a pose is a miss
     run_eval(args.dataset, csv, args.output, report=not args.no_report, targets=Path(args.output) / "targets.json")
@@ -523,6 +526,8 @@ def build_parser() -> argparse.ArgumentParser:
     r.add_argument("--objects", help="comma-separated object ids")
     r.add_argument("--max-targets", type=int)
     r.add_argument("--refs-dir", help="cache of reference sets (default OUT/refs)")
+    r.add_argument("--detections", help="BOP-format detections JSON (e.g. CNOS's default detections): each target "
+                   "takes its top-scoring detections' masks or boxes instead of the GT bbox_visib")
     r.add_argument("--no-report", action="store_true")
     _add_parallel_args(r)
     _add_config_args(r)

@@ -33,6 +33,7 @@ from pixie.threads import set_threads
 from pixie.config import PixieConfig
 from pixie.errors import DatasetError, OutputError, PixieError, ReferenceSetError
 from pixie.pipeline.estimator import PoseEstimator
+from pixie.eval.detections import DetectionSet, load_detections
 from pixie.eval.datasets import BopDataset, PoseEstimate, Target, write_results_csv
 from pixie.matching import Matcher, matcher_from_config
 from pixie.geometry.mesh import Mesh, load_mesh
@@ -225,8 +226,10 @@ def run_dataset(dataset_root: str | Path, out_dir: str | Path, config: PixieConf
                 objects: list[int] | None = None, max_targets: int | None = None,
                 refs_dir: str | Path | None = None, echo: Callable[[str], None] = print,
                 show_progress: bool = True, threads: int | None = None, use_ray: bool = False,
-                address: str | None = None, workers: int | None = None) -> Path:
-    """Estimate every target of a BOP dataset (GT ``bbox_visib`` as the crop) and write ``results.csv``.
+                address: str | None = None, workers: int | None = None,
+                detections: str | Path | None = None) -> Path:
+    """Estimate every target of a BOP dataset (GT ``bbox_visib`` as the crop, or the top-scoring of the BOP-format
+    ``detections``, :mod:`pixie.eval.detections`) and write ``results.csv``.
 
     Per-target results are appended to ``out_dir/per_target.jsonl`` as they come, so an interrupted
     run resumes where it stopped. Returns the path of the BOP CSV.
@@ -245,7 +248,10 @@ def run_dataset(dataset_root: str | Path, out_dir: str | Path, config: PixieConf
     write_atomic(out / "targets.json", json.dumps([dict(scene_id=t.scene_id, im_id=t.im_id, obj_id=t.obj_id,
                                                         inst_count=t.inst_count) for t in targets]))
     journal = Journal(out / "per_target.jsonl", key=lambda rec: tuple(rec["key"]))
-    prints = {o: run_fingerprint(cfg, ds, o) for o in sorted({t.obj_id for t in targets})}
+    dets = load_detections(detections) if detections is not None else None
+    if dets is not None:
+        echo(f"{len(dets)} detections from {dets.path} (the top-scoring per target, as BOP's unseen-object protocol)")
+    prints = {o: run_fingerprint(cfg, ds, o, dets) for o in sorted({t.obj_id for t in targets})}
     cached = {_tkey(t) for t in targets if _valid_record(journal.get(_tkey(t)), prints[t.obj_id])}
     errors = sum(bool((journal.get(_tkey(t)) or {}).get("error")) for t in targets)
     stale = sum(_tkey(t) in journal and _tkey(t) not in cached for t in targets) - errors
@@ -264,9 +270,10 @@ def run_dataset(dataset_root: str | Path, out_dir: str | Path, config: PixieConf
         before = set_threads(threads or 1) if (threads or use_ray) else None
         try:
             if use_ray:
-                _run_ray(ds, cfg, todo, refs_dir, journal, echo, show_progress, threads or 1, address, workers, prints)
+                _run_ray(ds, cfg, todo, refs_dir, journal, echo, show_progress, threads or 1, address, workers, prints,
+                         dets)
             else:
-                _run_serial(ds, cfg, todo, refs_dir, journal, echo, show_progress, prints)
+                _run_serial(ds, cfg, todo, refs_dir, journal, echo, show_progress, prints, dets)
         finally:
             if before is not None:
                 set_threads(before)
@@ -277,7 +284,8 @@ def run_dataset(dataset_root: str | Path, out_dir: str | Path, config: PixieConf
 
 
 def _run_serial(ds: BopDataset, cfg: PixieConfig, todo: list[Target], refs_dir: Path, journal: Journal,
-                echo: Callable[[str], None], show_progress: bool, prints: dict[int, str]) -> None:
+                echo: Callable[[str], None], show_progress: bool, prints: dict[int, str],
+                dets: DetectionSet | None = None) -> None:
     bar = _progress(len(todo), show_progress)
     matcher = make_matcher(cfg)
     for obj_id in sorted({t.obj_id for t in todo}):
@@ -287,14 +295,14 @@ def _run_serial(ds: BopDataset, cfg: PixieConfig, todo: list[Target], refs_dir: 
         echo(f"obj {obj_id}: reference set ready in {time.perf_counter() - t0:.1f} s")
         est = PoseEstimator(refs, cfg, matcher=matcher)
         for t in (t for t in todo if t.obj_id == obj_id):
-            journal.append(dict(_run_target(ds, est, t), run=prints[obj_id]))
+            journal.append(dict(_run_target(ds, est, t, dets), run=prints[obj_id]))
             bar.update(1)
     bar.close()
 
 
 def _run_ray(ds: BopDataset, cfg: PixieConfig, todo: list[Target], refs_dir: Path, journal: Journal,
              echo: Callable[[str], None], show_progress: bool, threads: int, address: str | None,
-             workers: int | None, prints: dict[int, str]) -> None:
+             workers: int | None, prints: dict[int, str], dets: DetectionSet | None = None) -> None:
     """The targets on Ray workers: reference sets built here once (at ``threads``, like a serial run), workers
     load them from ``refs_dir``; records come back here and go to the journal."""
     matcher = make_matcher(cfg)
@@ -308,7 +316,9 @@ def _run_ray(ds: BopDataset, cfg: PixieConfig, todo: list[Target], refs_dir: Pat
     todo = sorted(todo, key=lambda t: (t.obj_id, t.scene_id, t.im_id))  # workers keep the estimator at hand
     bar = _progress(len(todo), show_progress)
     spec = WorkerSpec(_setup_bop, _process_bop, {"dataset": str(ds.root.resolve()), "config": cfg.to_dict(),
-                                                 "refs": refs_paths}, threads)
+                                                 "refs": refs_paths,
+                                                 "detections": None if dets is None else str(dets.path.resolve())},
+                      threads)
 
     def on_result(_: int, rec: dict) -> None:
         journal.append(dict(rec, run=prints[rec["key"][2]]))
@@ -325,7 +335,8 @@ def _setup_bop(args: dict) -> dict:
     """Ray worker state: the dataset, the config, the reference-set files, one matcher, estimators on demand."""
     cfg = PixieConfig.from_dict(args["config"])
     return {"ds": BopDataset(args["dataset"]), "cfg": cfg, "refs": {int(k): v for k, v in args["refs"].items()},
-            "matcher": make_matcher(cfg), "est": {}}
+            "matcher": make_matcher(cfg), "est": {},
+            "dets": load_detections(args["detections"]) if args.get("detections") else None}
 
 
 def _process_bop(state: dict, item: list[int]) -> dict:
@@ -338,11 +349,33 @@ def _process_bop(state: dict, item: list[int]) -> dict:
         while len(ests) >= 2:
             ests.pop(next(iter(ests)))
         ests[obj_id] = PoseEstimator(refs, PixieConfig.from_dict(state["cfg"].to_dict()), matcher=state["matcher"])
-    return _run_target(state["ds"], ests[obj_id], Target(scene_id, im_id, obj_id, inst_count))
+    return _run_target(state["ds"], ests[obj_id], Target(scene_id, im_id, obj_id, inst_count), state.get("dets"))
 
 
-def _run_target(ds: BopDataset, est, t: Target) -> dict:
-    """Estimate the pose of each GT instance of the target object in one image (GT boxes as crops).
+def _crops(ds: BopDataset, t: Target, dets: DetectionSet | None) -> list[dict]:
+    """What each of the target's ``inst_count`` estimates is given: a GT instance's ``bbox_visib`` (most visible
+    first), or, with external detections, the top-scoring detections' masks or boxes; None where there is none."""
+    if dets is not None:
+        found = dets.for_target(t.scene_id, t.im_id, t.obj_id, t.inst_count)
+        out = [{"bbox": d.box_xywh if d.rle is None else None, "mask": d.mask(), "detection": d} for d in found]
+        why = (f"scene {t.scene_id} image {t.im_id} object {t.obj_id}: {dets.path.name} has "
+               f"{len(found)} detection(s) of it for {t.inst_count} instance(s)")
+        return out + [{"missing": why}] * (t.inst_count - len(found))
+    insts = sorted((g for g in ds.instances(t.scene_id, t.im_id) if g.obj_id == t.obj_id),
+                   key=lambda g: -(g.visib_fract if g.visib_fract is not None else 1.0))
+    out = []
+    for g in insts[: t.inst_count]:
+        if g.box_visib is None:
+            out.append({"missing": f"scene {t.scene_id} image {t.im_id} object {t.obj_id}: the dataset gives no "
+                                   "bbox_visib (scene_gt_info.json), and pixie needs the object's box"})
+        else:
+            out.append({"bbox": g.box_visib, "mask": None})
+    return out
+
+
+def _run_target(ds: BopDataset, est, t: Target, dets: DetectionSet | None = None) -> dict:
+    """Estimate the pose of each instance of the target object in one image: GT ``bbox_visib`` crops, or the
+    top-scoring external detections (``dets``) as BOP's unseen-object protocol does (a target without one is a miss).
 
     A target whose image or annotations cannot be read is recorded failed with the reason (``error``: it runs
     again next time) and counts as a miss; the run goes on."""
@@ -350,26 +383,29 @@ def _run_target(ds: BopDataset, est, t: Target) -> dict:
     try:
         img = ds.load_rgb(t.scene_id, t.im_id)
         K = ds.camera(t.scene_id, t.im_id).K
-        insts = sorted((g for g in ds.instances(t.scene_id, t.im_id) if g.obj_id == t.obj_id),
-                       key=lambda g: -(g.visib_fract if g.visib_fract is not None else 1.0))
+        crops = _crops(ds, t, dets)
     except (PixieError, OSError) as exc:
         why = str(exc) if f"image {t.im_id}" in str(exc) else f"scene {t.scene_id} image {t.im_id}: {exc}"
         return {"key": list(_tkey(t)), "error": why, "estimates": [
             {"T": None, "score": 0.0, "failed": True, "time": 0.0, "timings": {"error": why}}] * t.inst_count}
-    for inst in insts[: t.inst_count]:
+    for crop in crops:
         t0 = time.perf_counter()
         warns: list[str] = []
         try:
-            if inst.box_visib is None:
-                raise DatasetError(f"scene {t.scene_id} image {t.im_id} object {t.obj_id}: the dataset gives no "
-                                   "bbox_visib (scene_gt_info.json), and pixie needs the object's box")
+            if "missing" in crop:
+                raise DatasetError(crop["missing"])
             with collect_warnings() as notes:
-                r = est.estimate(img, K, bbox=inst.box_visib)
+                r = est.estimate(img, K, bbox=crop["bbox"], mask=crop["mask"])
             T, score, failed, timings, warns = r.T_cam_from_obj, r.score, r.failed, r.timings, notes.merge(r.warnings)
         except PixieError as exc:
             T, score, failed, timings = None, 0.0, True, {"error": str(exc)}
-        rows.append({"T": None if T is None else T.tolist(), "score": score, "failed": failed,
-                     "time": time.perf_counter() - t0, "timings": timings, "warnings": warns})
+        row = {"T": None if T is None else T.tolist(), "score": score, "failed": failed,
+               "time": time.perf_counter() - t0, "timings": timings, "warnings": warns}
+        if crop.get("detection") is not None:  # which external detection this estimate used
+            d = crop["detection"]
+            row["detection"] = {"index": d.index, "score": d.score, "box_xywh": [float(v) for v in d.box_xywh],
+                                "mask": d.rle is not None, "time": d.time}
+        rows.append(row)
     return {"key": list(_tkey(t)), "estimates": rows}
 
 
@@ -391,12 +427,15 @@ def code_version() -> str:
     return f"{__version__}+{h.hexdigest()[:12]}"
 
 
-def run_fingerprint(cfg: PixieConfig, ds: BopDataset, obj_id: int) -> str:
+def run_fingerprint(cfg: PixieConfig, ds: BopDataset, obj_id: int, dets: DetectionSet | None = None) -> str:
     """What a per-target result of ``obj_id`` depends on: code version, the whole config, the dataset (folder
-    and split) and the object's model file (hence its reference set, a function of model, config and code)."""
+    and split), the object's model file (hence its reference set, a function of model, config and code) and the
+    detections file when one gives the crops."""
     model = hashlib.sha256(Path(ds.model_path(obj_id)).read_bytes()).hexdigest()
     blob = json.dumps({"code": code_version(), "config": cfg.to_dict(), "dataset": str(Path(ds.root).resolve()),
                        "split": ds.split, "model": model}, sort_keys=True)
+    if dets is not None:  # only then: earlier GT-box runs keep their fingerprints
+        blob += "|detections:" + dets.sha256
     return hashlib.sha256(blob.encode()).hexdigest()[:16]
 
 

@@ -260,6 +260,11 @@ def _lm_step(K: np.ndarray, T: np.ndarray, mp: ModelPoints, pe: PhotoEdges, tau:
         wb = wb * cfg["w_box"] * float(use.sum())
         H += Jb.T @ (Jb * wb[:, None])
         b += Jb.T @ (wb * rb)
+    if cfg["m_xyz"] is not None:
+        rm, wm, Jm = _match_terms(K, T, cfg, tau)
+        wm = wm * cfg["w_matches"] * float(use.sum()) / len(wm)
+        H += Jm.T @ (Jm * wm[:, None])
+        b += Jm.T @ (wm * rm)
     if cfg["rot_prior"] > 0:  # pull the rotation towards the start's: a deviation of 1 rad costs rot_prior px² per point
         wsum = float(w.sum())
         H[:3, :3] += cfg["rot_prior"] * wsum * np.eye(3)
@@ -311,6 +316,26 @@ def _box_terms(K: np.ndarray, T: np.ndarray, cfg: dict, tau: float) -> tuple[np.
     return d, w, _jacobian(K, Xc[idx], a, c)
 
 
+def _match_terms(K: np.ndarray, T: np.ndarray, cfg: dict, tau: float) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """Residuals (2n,), Tukey weights and Jacobian rows (2n, 6) of the matcher's 2D–3D correspondences: the
+    projection of each object point minus its photo point (crop px), x then y rows, one weight per point (on its
+    distance) with scale ``max(match_px, tau)``."""
+    Xc = cfg["m_xyz"] @ T[:3, :3].T + T[:3, 3]
+    d = _project(K, Xc) - cfg["m_uv"]
+    w = _tukey_weight(np.linalg.norm(d, axis=1), max(cfg["match_px"], tau))
+    c = T[:3, :3] @ cfg["center"] + T[:3, 3]
+    n = len(Xc)
+    ex, ey = np.tile([1.0, 0.0], (n, 1)), np.tile([0.0, 1.0], (n, 1))
+    J = np.concatenate([_jacobian(K, Xc, ex, c), _jacobian(K, Xc, ey, c)])
+    return np.concatenate([d[:, 0], d[:, 1]]), np.concatenate([w, w]), J
+
+
+def _match_cost(K: np.ndarray, T: np.ndarray, cfg: dict, tau: float) -> float:
+    """Mean Tukey cost of the matcher's correspondences (see :func:`_match_terms`)."""
+    Xc = cfg["m_xyz"] @ T[:3, :3].T + T[:3, 3]
+    return float(np.mean(_tukey_rho(np.linalg.norm(_project(K, Xc) - cfg["m_uv"], axis=1), max(cfg["match_px"], tau))))
+
+
 def _box_cost(K: np.ndarray, T: np.ndarray, cfg: dict, tau: float) -> float:
     d, _, _ = _box_terms(K, T, cfg, tau)
     rho = np.where(d < 0, 0.5 * d ** 2, _tukey_rho(d, tau))
@@ -348,6 +373,8 @@ def _robust_cost(K, T, mp, pe, tau, cfg) -> tuple[float, int]:
     prior = cfg["rot_prior"] * float(np.sum(_rotvec(R @ cfg["R0"].T) ** 2)) / 2 if cfg["rot_prior"] > 0 else 0.0
     if cfg["w_box"] > 0:
         prior += cfg["w_box"] * _box_cost(K, T, cfg, tau)
+    if cfg["m_xyz"] is not None:  # the same balance as in _lm_step: w_matches x the used contour points' weight
+        prior += cfg["w_matches"] * _match_cost(K, T, cfg, tau) * float(use.sum()) / len(use)
     return float((np.sum(rho * w) + cfg["out_cost"] * n_out * tau ** 2 / 6) / len(use)) + prior, int(use.sum())
 
 
@@ -357,7 +384,9 @@ def align(renderer: Renderer, pe: PhotoEdges, T0: np.ndarray, center: np.ndarray
           fit_px: float = 1.5, rerender: int = 2, rot_prior: float = 0.0, dof: str = "6",
           search: str = "normal", min_contrast: float = 0.0, w_box: float = 0.0,
           hull: np.ndarray | None = None, coarse: PhotoEdges | None = None,
-          coarse_schedule: tuple[float, ...] = (8.0, 4.0), out_cost: float = 1.0) -> AlignResult:
+          coarse_schedule: tuple[float, ...] = (8.0, 4.0), out_cost: float = 1.0,
+          matches: tuple[np.ndarray, np.ndarray] | None = None, w_matches: float = 0.0,
+          match_px: float = 10.0) -> AlignResult:
     """Levenberg–Marquardt alignment of ``T0`` (photo camera) to the photo's edges, coarse to fine.
 
     Parameters
@@ -378,19 +407,28 @@ def align(renderer: Renderer, pe: PhotoEdges, T0: np.ndarray, center: np.ndarray
     out_cost : cost of a model point outside the allowed region (occluded), in units of a truncated point's
     coarse, coarse_schedule : a coarser :func:`photo_edges` of the same photo (e.g. half ``object_px``) aligned first
         over ``coarse_schedule`` (its crop px): a wider basin at the same Tukey scales
+    matches, w_matches, match_px : 2D–3D correspondences (photo px (n, 2), object mm (n, 3)), e.g. the PnP inliers
+        the start was solved from, as residuals of total weight ``w_matches`` x the contour points', Tukey scale
+        ``max(match_px, tau)`` crop px: interior evidence the silhouette does not give; None or 0 = unused
     """
     center = renderer.mesh.center if center is None else np.asarray(center, np.float64)
     cfg = {"max_bin_gap": int(max_bin_gap), "bin_penalty": float(bin_penalty), "crease_weight": float(crease_weight),
            "center": center, "rot_prior": float(rot_prior), "dof": str(dof), "search": str(search),
            "min_contrast": float(min_contrast), "w_box": float(w_box) if hull is not None or w_box == 0 else 0.0,
            "hull": None if hull is None else np.asarray(hull, np.float64), "box_sides": pe.box_sides,
-           "out_cost": float(out_cost), "R0": np.asarray(T0, np.float64)[:3, :3]}
+           "out_cost": float(out_cost), "R0": np.asarray(T0, np.float64)[:3, :3], "m_xyz": None, "m_uv": None,
+           "w_matches": float(w_matches), "match_px": float(match_px)}
+    use_matches = matches is not None and w_matches > 0 and len(matches[0]) >= 6
     T = np.asarray(T0, np.float64).copy()
     history, n_it, converged = [], 0, False
     levels = ([(coarse, tuple(coarse_schedule))] if coarse is not None else []) + [(pe, tuple(schedule))]
     for lv, sched in levels:
         cfg["box_sides"] = lv.box_sides
         K = lv.K
+        if use_matches:  # photo px -> this level's crop px (crop.A maps crop px to photo px)
+            A = lv.crop.A
+            cfg["m_uv"] = (np.asarray(matches[0], np.float64) - A[:, 2]) @ np.linalg.inv(A[:, :2]).T
+            cfg["m_xyz"] = np.asarray(matches[1], np.float64)
         for tau in sched:
             for _ in range(max(rerender, 1)):
                 mp = model_points(renderer, T, K, lv.size, n_points, crease_share)

@@ -412,6 +412,7 @@ class PoseEstimator:
             res = solve_pnp_ransac(p2, p3, q.K, p.ransac_iterations, thr, p.confidence, p.min_inliers, p.solver)
             h = self.hypothesis(q, res, v, r, sc)
             if h is not None:
+                h.support_uv, h.support_xyz = p2[res.inliers], p3[res.inliers]
                 hyps.append(h)
         return sorted(hyps, key=lambda h: -h.score)
 
@@ -569,7 +570,7 @@ class PoseEstimator:
                                     canny_high=ac.canny_high)
         kw = dict(schedule=tuple(ac.schedule), iters=ac.iters, crease_weight=ac.crease_weight, rot_prior=ac.rot_prior,
                   fit_px=ac.fit_px, search=ac.search, min_contrast=ac.min_contrast, w_box=ac.w_box,
-                  hull=self.box_points)
+                  hull=self.box_points, w_matches=ac.w_matches, match_px=ac.match_px)
         return ren, q.photo_edges, kw
 
     def align_stage(self, q: Query, hyps: list[Hypothesis]) -> list[Hypothesis]:
@@ -588,7 +589,8 @@ class PoseEstimator:
             jobs += [(h, T, "flip") for T in flip_twins(h.T_cam_from_obj, self.refs.mesh.center)]
         new: list[Hypothesis] = []
         for h, T0, src in jobs:
-            res = align(ren, pe, T0, **kw)
+            sup = (h.support_uv, h.support_xyz) if src == "aligned" and h.support_uv is not None else None
+            res = align(ren, pe, T0, **kw, matches=sup)
             T = res.T_cam_from_obj
             ms = h.match_score if src == "aligned" else 0.0  # a twin has no matcher support of its own
             nh = Hypothesis(T_cam_from_obj=T, score=0.0, match_score=ms, n_inliers=h.n_inliers if src == "aligned" else 0,

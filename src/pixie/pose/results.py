@@ -79,6 +79,10 @@ class Hypothesis:
     # then ``score`` = fused + align.w_fit * fit
     terms: dict = field(default_factory=dict)  # every verification term (pixie.cues.shape.ShapeCues.verify_terms)
     matcher_best: bool = False  # the matcher's own choice (what the pipeline returns without shape cues)
+    # the PnP inliers it was solved from: photo px (n, 2) and object mm (n, 3); None for edge-template, flip or
+    # prior hypotheses (the edge alignment keeps them as residuals, config.align.w_matches)
+    support_uv: np.ndarray | None = field(default=None, repr=False)
+    support_xyz: np.ndarray | None = field(default=None, repr=False)
 
 
 @dataclass
