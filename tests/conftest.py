@@ -42,7 +42,8 @@ needs_lmo = pytest.mark.skipif(
 # order, longest first, so that pytest-xdist's whole-file workers (``--dist loadfile``) finish together.
 FILE_SECONDS = {"test_pipeline": 240, "test_crash_safety": 125, "test_bad_inputs": 90, "test_estimator": 70,
                 "test_batch": 60, "test_cluster": 55, "test_batch_objects": 40, "test_cli": 40, "test_runner": 25,
-                "test_edge_align": 25, "test_track": 20, "test_api": 20, "test_render_cmd": 12}
+                "test_edge_align": 25, "test_track": 20, "test_api": 20, "test_render_cmd": 12, "test_detect": 50,
+                "test_eval_detections": 20}
 
 
 def pytest_collection_modifyitems(config, items):

@@ -42,6 +42,7 @@ _EXPORTS = {
     "load_image": "pixie.pipeline.query",
     "build_reference_set": "pixie.references.set",
     "load_reference_set": "pixie.references.store",
+    "find_objects": "pixie.pipeline.find",
 }
 
 __all__ = ["__version__", *_EXPORTS]

@@ -30,6 +30,7 @@ from pixie.app.demo import main as demo_main
 from pixie.references.encode import check_encodings
 from pixie.errors import ConfigError, DatasetError, PixieError, ReferenceSetError, UsageError
 from pixie.pipeline.estimator import PoseEstimator
+from pixie.pipeline.find import find_objects
 from pixie.eval import BopDataset, add_eval_arguments, main_eval, run_eval
 from pixie.eval.detections import load_detections
 from pixie.matching import available_matchers, backend_weights
@@ -202,8 +203,11 @@ def _estimate_one(args: argparse.Namespace, notes) -> int:
     cfg = _config(args)
     if args.K is None:
         raise UsageError("--K fx,fy,cx,cy is needed (the camera intrinsics in pixels)")
-    if args.bbox is None and args.mask is None and not args.init_pose:
-        raise UsageError(no_box_message("--bbox x,y,w,h", "--mask MASK.png", "--bbox 0,0,WIDTH,HEIGHT"))
+    if args.bbox is None and args.mask is None and not args.init_pose and not args.detect:
+        raise UsageError(no_box_message("--bbox x,y,w,h", "--mask MASK.png", "--bbox 0,0,WIDTH,HEIGHT")
+                         + ", or --detect to search the whole photo for it")
+    if args.detect and (args.bbox is not None or args.mask or args.init_pose):
+        raise UsageError("--detect searches the photo for the object: drop --bbox / --mask / --init-pose")
     T_init = read_pose_file(args.init_pose) if args.init_pose else None
     T_gt = read_pose_file(args.gt) if args.gt else None
     out_json = output_file(args.output, force=args.force, what="result") if args.output else None
@@ -223,6 +227,8 @@ def _estimate_one(args: argparse.Namespace, notes) -> int:
             check_query_mask(mask, image.shape[:2], box)
     _matcher_for(refs, cfg, args)
     est = PoseEstimator(refs, cfg)
+    if args.detect:
+        return _estimate_detect(args, est, image, K, out_json, out_png)
     if T_init is not None:  # refine the prior: no view search
         print("refining the --init-pose (edge alignment) ...", flush=True)
         res = annotate(est.estimate_from_prior(image, K, T_init, bbox=bbox, mask=mask), est, cfg, notes)
@@ -269,6 +275,44 @@ def _estimate_one(args: argparse.Namespace, notes) -> int:
                  force=args.force)
         print(f"overlay -> {out_png}")
     return 1 if res.failed else 0
+
+
+def _estimate_detect(args: argparse.Namespace, est: PoseEstimator, image, K, out_json, out_png) -> int:
+    """``estimate --detect``: LINE-2D proposals of the whole photo, each estimated, the supported poses kept
+    (:func:`pixie.pipeline.find.find_objects`); "not found" is a result (exit 0, ``found: false``)."""
+    dist = None if not args.distance else tuple(parse_numbers(args.distance, "--distance", 2, error=UsageError))
+    _at_least_one(args, "instances", "proposals")
+    print("searching the photo for the object (LINE-2D proposals of its contour templates) ...", flush=True)
+    fr = find_objects(est, image, K, top_k=args.proposals, max_instances=args.instances, distance_mm=dist,
+                      cache_dir=cache_dir().parent / "line2d",
+                      progress=lambda s: print(f"\restimating {s} ...", end="", flush=True))
+    print()
+    for p, v in zip(fr.proposals, fr.verdicts):
+        print(f"proposal box x,y,w,h = {','.join(f'{x:.0f}' for x in p.box_xywh)} (LINE-2D {p.score:.0f}): {v}")
+    if not fr.found:
+        print("not found: no proposal gave a pose the photo supports (exit 0; give --bbox or --mask if it is there)")
+    for i, r in enumerate(fr.poses):
+        np.set_printoptions(precision=4, suppress=True)
+        print(f"instance {i + 1}: box {np.round(r.box_xyxy, 0).tolist()} (x0,y0,x1,y1), confidence {r.confidence:.2f}"
+              f"\nT_cam_from_obj (mm) =\n{r.T_cam_from_obj}")
+    if out_json:
+        best = fr.poses[0].to_dict() if fr.found else {"T_cam_from_obj": None, "failed": True,
+                                                        "message": "not found"}
+        record = {**best, "found": fr.found, "detection": fr.to_dict(),
+                  "instances": [r.to_dict() for r in fr.poses],
+                  "image": {"path": str(args.image), "sha256": sha256_file(args.image)}}
+        write_atomic(out_json, json.dumps(record, indent=1) + "\n", force=args.force)
+        print(f"result -> {out_json}")
+    if out_png:
+        ren = Renderer(est.refs.mesh)
+        ov = image.copy()
+        for r in fr.poses:
+            ov = overlay_result(ov, ren, r.T_cam_from_obj, K, r.box_xyxy, f"confidence {r.confidence:.2f}")
+        box = fr.poses[0].box_xyxy if fr.found else (fr.proposals[0].box_xyxy if fr.proposals else None)
+        msg = "" if fr.found else "not found"
+        save_png(out_png, status_view(ov, box, not fr.found, msg, "") if box is not None else ov, force=args.force)
+        print(f"overlay -> {out_png}")
+    return 0
 
 
 def _estimate_batch(args: argparse.Namespace) -> int:
@@ -510,6 +554,12 @@ def build_parser() -> argparse.ArgumentParser:
                    "translation and ADD error of the estimate and adds them to the result JSON")
     e.add_argument("--init-pose", help="a starting pose (JSON: a pixie result, R and t in mm, or BOP cam_R_m2c / "
                    "cam_t_m2c) refined by edge alignment instead of searching all views; --bbox optional")
+    e.add_argument("--detect", action="store_true", help="no box: search the whole photo for the object (LINE-2D "
+                   "proposals from its contour templates, each verified by its pose; 'not found' is a result)")
+    e.add_argument("--distance", help="--detect: the object's distance range MIN,MAX in mm (default: any that makes "
+                   "it 60-360 px across); a narrower range is faster and finds it more reliably")
+    e.add_argument("--proposals", type=int, default=3, help="--detect: proposals estimated (default 3)")
+    e.add_argument("--instances", type=int, default=1, help="--detect: at most this many instances (default 1)")
     e.add_argument("--masks", help="--batch FOLDER: folder of masks named like the images")
     e.add_argument("-o", "--output", help="result JSON (one photo) or output folder (--batch)")
     e.add_argument("--overlay", help="PNG with the model drawn at the estimate")

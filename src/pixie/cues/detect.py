@@ -1,0 +1,219 @@
+"""Finding the object without a box: LINE-2D proposals from the reference set's own contour templates.
+
+The contour templates (:mod:`pixie.references.templates`: silhouette and crease points with their gradient
+orientation, per view, stored in the reference set) are turned into LINE-2D templates (Hinterstoisser et al.,
+TPAMI 2012; OpenCV's ``cv2.linemod``, colour-gradient modality): every chosen view, rolled in the image plane and
+scaled to each plausible distance, becomes a set of (x, y, orientation label) features at two pyramid levels.
+No second template set is rendered; ``cv2.linemod`` only does the fast search (quantised gradient orientations,
+spreading, response maps). Matches become object boxes (the template's rolled, scaled outline), non-maximum
+suppression keeps the best few; :func:`pixie.pipeline.find.find_objects` then verifies each with the pose
+pipeline and keeps those whose pose the photo supports.
+
+Measured (bench/RESULTS.md, "Detection"): on rendered scenes with clutter and distractors the object's box is the
+best proposal; on LM-O's real clutter LINE-2D ranks background higher (the object is among the top-100 boxes for
+~3 of 4 targets, but rarely among the top 5): there, give boxes or external detections (``pixie run --detections``).
+
+>>> det = TemplateDetector(ContourTemplates.from_arrays(refs.templates), K, diameter=refs.mesh.diameter)
+>>> props = det.propose(image, top_k=5)                  # list[Proposal], best first
+"""
+
+from __future__ import annotations
+
+import hashlib
+import os
+import tempfile
+from dataclasses import dataclass
+from pathlib import Path
+
+import cv2
+import numpy as np
+
+from pixie.errors import PixieError
+from pixie.paths import write_atomic
+from pixie.pose.solve import box_iou
+from pixie.references.templates import ContourTemplates
+
+__all__ = ["Proposal", "TemplateDetector", "linemod_available"]
+
+_LEVELS = 2  # cv2.linemod.getDefaultLINE(): pyramid levels with spreading T = 5 (fine) and 8 (coarse)
+
+
+def linemod_available() -> bool:
+    """OpenCV was built with the contrib ``rgbd`` module (``opencv-contrib-python-headless``)."""
+    return hasattr(cv2, "linemod")
+
+
+@dataclass(kw_only=True)
+class Proposal:
+    """One place where the object may be: its box, the LINE-2D similarity (0–100) and the template that fired."""
+
+    box_xyxy: np.ndarray  # x0, y0, x1, y1 image px (pixel-edge extent of the template's outline)
+    score: float
+    view: int  # contour-template view
+    angle: float  # in-plane roll, radians
+    scale: float  # template px -> image px
+    centre: np.ndarray  # image px of the object centre's projection
+
+    @property
+    def box_xywh(self) -> np.ndarray:
+        b = self.box_xyxy
+        return np.array([b[0], b[1], b[2] - b[0], b[3] - b[1]], np.float64)
+
+
+def _labels(ori: np.ndarray) -> np.ndarray:
+    """LINE-MOD's 8 orientation labels of unsigned gradient orientations (radians): 22.5° bins over [0, 180°)."""
+    return (np.floor(np.mod(np.degrees(ori), 180.0) / 22.5).astype(int)) % 8
+
+
+def _spread(n: int, k: int) -> np.ndarray:
+    return np.linspace(0, n - 1, k).round().astype(int) if n > k else np.arange(n)
+
+
+@dataclass(kw_only=True)
+class _Placement:
+    view: int
+    angle: float
+    scale: float
+    box: np.ndarray  # outline box relative to the features' top-left at level 0 (x0, y0, x1, y1)
+    origin: np.ndarray  # the object centre relative to the features' top-left at level 0
+
+
+class TemplateDetector:
+    """LINE-2D search of the rolled, scaled contour templates of one object in photos taken with focal ``K``.
+
+    Parameters
+    ----------
+    templates : the reference set's contour templates
+    K : photo intrinsics (the focal length sets the scales; the principal point does not matter)
+    diameter : the object's diameter, mm (with ``sizes_px`` it sets the distances searched)
+    sizes_px : smallest and largest projected diameter searched, photo px
+    distance_mm : or the distance range searched, mm (overrides ``sizes_px``)
+    n_views, roll_deg, scale_step : views used (spread over the stored ones; all 300 by default: LINE-2D's
+        spreading tolerates a few pixels, so sparser views miss), in-plane roll step, ratio between scales
+    n_features : features per template (LINE-MOD's default 63)
+    cache_dir : where the LINE-2D template file is kept between processes (keyed by the templates and every
+        setting above); without it each detector writes its own (~10 s for 36 000 templates, reading it ~2 s)
+
+    Templates = views x rolls x scales (300 x 24 x 4 = 28 800 for a 1.8:1 distance range: ~6 s to build, 0.1–2 s
+    per 640 x 480 photo); a narrower distance range is faster and more selective.
+    """
+
+    def __init__(self, templates: ContourTemplates, K: np.ndarray, diameter: float,
+                 sizes_px: tuple[float, float] = (60.0, 360.0), distance_mm: tuple[float, float] | None = None,
+                 n_views: int = 300, roll_deg: float = 15.0, scale_step: float = 1.2, n_features: int = 63,
+                 cache_dir: str | os.PathLike | None = None):
+        if not linemod_available():
+            raise PixieError("finding the object without a box needs OpenCV's contrib modules (cv2.linemod): "
+                             "pip install opencv-contrib-python-headless")
+        self.tpl = templates
+        f = float(K[0, 0])
+        f_t = float(templates.K[0, 0])
+        z_t = float(np.median(np.linalg.norm(templates.poses[:, :3, 3], axis=1)))  # template camera distance
+        if distance_mm is None:
+            distance_mm = (f * diameter / sizes_px[1], f * diameter / sizes_px[0])
+        lo, hi = float(min(distance_mm)), float(max(distance_mm))
+        if not (lo > 0 and np.isfinite(hi)):
+            raise PixieError(f"the distance range to search must be positive mm, got {distance_mm!r}")
+        n_scales = int(np.ceil(np.log(hi / lo) / np.log(scale_step))) + 1 if hi > lo * 1.0001 else 1
+        z = np.geomspace(lo, hi, n_scales) if n_scales > 1 else np.array([lo])
+        self.scales = (f / z) / (f_t / z_t)
+        self.views = _spread(templates.n_views, n_views)
+        self.angles = np.radians(np.arange(0.0, 360.0, roll_deg))
+        self.n_features = int(n_features)
+        self.placements: list[_Placement] = []
+        self._det = self._build(None if cache_dir is None else Path(cache_dir))
+
+    def _key(self) -> str:
+        h = hashlib.sha256(b"line2d-v1")
+        for a in (self.tpl.xy, self.tpl.ori, self.tpl.kind, self.tpl.outline, self.views, self.angles, self.scales):
+            h.update(np.ascontiguousarray(a).tobytes())
+        h.update(str(self.n_features).encode())
+        return h.hexdigest()[:16]
+
+    def _build(self, cache: Path | None):
+        """A ``cv2.linemod`` detector holding one class ("obj") of every (view, roll, scale) template, read from a
+        YAML file in OpenCV's FileStorage layout (the Python bindings cannot set a template's fields): written
+        into ``cache`` once per key (atomically), or into a temporary folder."""
+        folder = None if cache is None else cache / f"line2d-{self._key()}"
+        lines = self._placements_and_yaml(write=folder is None or not (folder / "obj.yml").is_file())
+        det = cv2.linemod.getDefaultLINE()
+        if folder is not None:
+            if lines is not None:
+                folder.mkdir(parents=True, exist_ok=True)
+                write_atomic(folder / "obj.yml", "\n".join(lines) + "\n")
+            det.readClasses(["obj"], str(folder).replace("%", "%%") + "/%s.yml")  # cv::format(pattern, class id)
+        else:
+            with tempfile.TemporaryDirectory(prefix="pixie-line2d-") as d:
+                with open(os.path.join(d, "obj.yml"), "w") as fh:
+                    fh.write("\n".join(lines) + "\n")
+                det.readClasses(["obj"], d.replace("%", "%%") + "/%s.yml")
+        if det.numTemplates() != len(self.placements):
+            raise PixieError(f"cv2.linemod read {det.numTemplates()} of {len(self.placements)} templates")
+        return det
+
+    def _placements_and_yaml(self, write: bool = True) -> list[str] | None:
+        """Fill :attr:`placements`; the YAML lines of the templates when ``write``."""
+        tpl = self.tpl
+        heads, feats = [], []  # per template and level: (width, height, level), its (n, 3) features
+        for v in self.views:
+            ok = tpl.kind[v] >= 0
+            sel = _spread(int(ok.sum()), self.n_features)
+            xy0, ori0 = tpl.xy[v][ok][sel].astype(np.float64), tpl.ori[v][ok][sel].astype(np.float64)
+            outline = tpl.outline[v].astype(np.float64)
+            for a in self.angles:
+                R = np.array([[np.cos(a), -np.sin(a)], [np.sin(a), np.cos(a)]])
+                xy, ol, lab = xy0 @ R.T, outline @ R.T, _labels(ori0 + a)
+                olo, ohi = ol.min(axis=0), ol.max(axis=0)
+                for s in self.scales:
+                    if (ohi - olo).max() * s < 16:  # too small to say anything at this scale
+                        continue
+                    p = xy * s
+                    for lv in range(_LEVELS):
+                        q = np.rint(p / 2 ** lv).astype(np.int64)
+                        lo = q.min(axis=0)
+                        q -= lo
+                        if lv == 0:
+                            lo0 = lo
+                        if write:
+                            heads.append((int(q[:, 0].max()) + 1, int(q[:, 1].max()) + 1, lv))
+                            feats.append(np.column_stack([q, lab]))
+                    # pixie's box convention: x0 = first covered pixel, x1 = last + 1 (the outline points are pixel
+                    # centres of a silhouette that reaches half a template pixel further)
+                    box = np.r_[olo * s - 0.5 * s + 0.5 - lo0, ohi * s + 0.5 * s + 0.5 - lo0]
+                    self.placements.append(_Placement(view=int(v), angle=float(a), scale=float(s), box=box,
+                                                      origin=-lo0.astype(np.float64)))
+        if not write:
+            return None
+        lines = ["%YAML:1.0", "class_id: obj", "modalities: [ ColorGradient ]", f"pyramid_levels: {_LEVELS}",
+                 "template_pyramids:"]
+        flat = np.concatenate(feats).tolist() if feats else []  # one conversion: per-array tolist is slow
+        at = 0
+        for i, (w, h, lv) in enumerate(heads):
+            if lv == 0:
+                lines += ["   -", f"      template_id: {i // _LEVELS}", "      templates:"]
+            n = len(feats[i])
+            lines += ["         -", f"            width: {w}", f"            height: {h}", f"            pyramid_level: {lv}",
+                      f"            features: {flat[at:at + n]}"]  # a flow sequence of [x, y, label]
+            at += n
+        return lines
+
+    @property
+    def n_templates(self) -> int:
+        return len(self.placements)
+
+    def propose(self, image: np.ndarray, top_k: int = 5, threshold: float = 70.0, nms_iou: float = 0.3,
+                max_matches: int = 20000) -> list[Proposal]:
+        """The ``top_k`` best distinct boxes (non-maximum suppression at ``nms_iou``) of RGB ``image``."""
+        bgr = np.ascontiguousarray(image[..., ::-1])
+        matches, _ = self._det.match([bgr], float(threshold))
+        out: list[Proposal] = []
+        for m in matches[:max_matches]:
+            pl = self.placements[m.template_id]
+            box = np.array([m.x + pl.box[0], m.y + pl.box[1], m.x + pl.box[2], m.y + pl.box[3]], np.float64)
+            if any(box_iou(box, o.box_xyxy) >= nms_iou for o in out):
+                continue
+            out.append(Proposal(box_xyxy=box, score=float(m.similarity), view=pl.view, angle=pl.angle,
+                                scale=pl.scale, centre=np.array([m.x, m.y], np.float64) + pl.origin))
+            if len(out) >= top_k:
+                break
+        return out

@@ -1,0 +1,115 @@
+"""Finding the object without a box: LINE-2D proposals (pixie.cues.detect) verified by the pose (pixie.pipeline.find)."""
+
+from __future__ import annotations
+
+import json
+
+import cv2
+import numpy as np
+import pytest
+import trimesh
+
+from pixie.cues.detect import TemplateDetector, linemod_available
+from pixie.geometry.camera import make_K, make_T, rotation_angle_deg
+from pixie.geometry.mesh import from_arrays
+from pixie.geometry.render import Renderer
+from pixie.pipeline.estimator import PoseEstimator
+from pixie.pipeline.find import find_objects
+from pixie.pose.solve import box_iou, projected_box
+from pixie.references.templates import ContourTemplates
+from pixie.synth.photo import Material, random_background, render_rgb
+from pixie.viz import save_png
+
+from conftest import pose_facing, run_cli
+
+pytestmark = [pytest.mark.usefixtures("one_torch_thread"),
+              pytest.mark.skipif(not linemod_available(), reason="OpenCV without contrib (cv2.linemod)")]
+
+K = make_K(600.0, 605.0, 321.5, 238.0)
+K_ARG = "600,605,321.5,238"
+
+
+@pytest.fixture(scope="module")
+def scene_parts(proc_mesh):
+    b = trimesh.creation.box(extents=[60.0, 45.0, 35.0])
+    return Renderer(proc_mesh), Renderer(from_arrays(np.asarray(b.vertices), np.asarray(b.faces), name="box"))
+
+
+def scene(proc_mesh, parts, seed: int, with_part: bool = True):
+    """640 x 480: the part 3.5-5.5 diameters away, two box distractors beside it, a cluttered background."""
+    ren, box = parts
+    rng = np.random.default_rng(seed)
+    T = pose_facing(proc_mesh, rng, 3.5 + rng.uniform(0, 2), 0.0, K)
+    c = T[:3, 3]
+    d1 = make_T(cv2.Rodrigues(rng.normal(size=3))[0], c + [-190.0, 40.0, 50.0])
+    d2 = make_T(cv2.Rodrigues(rng.normal(size=3))[0], c + [180.0, -30.0, 30.0])
+    rens, poses = ([ren] if with_part else []) + [box, box], ([T] if with_part else []) + [d1, d2]
+    ph = render_rgb(rens, poses, K, 480, 640, [Material.random(rng) for _ in rens], rng,
+                    background=random_background(480, 640, rng), shadows=False)
+    return ph.rgb, T
+
+
+@pytest.fixture(scope="module")
+def line2d_cache(tmp_path_factory):
+    """A user cache (``$XDG_CACHE_HOME``) shared by this module's API and CLI calls: templates written once."""
+    return tmp_path_factory.mktemp("xdg")
+
+
+@pytest.fixture(scope="module")
+def query_est(query_e2e):
+    refs, cfg, matcher = query_e2e
+    return PoseEstimator(refs, cfg, matcher=matcher)
+
+
+def distance(proc_mesh):
+    return (3.3 * proc_mesh.diameter, 5.8 * proc_mesh.diameter)
+
+
+def test_proposals_find_the_part_among_distractors_and_clutter(query_est, proc_mesh, scene_parts, line2d_cache):
+    """Measured (these 4 seeds, session 9): the part's box is the best proposal in 3 of 4 scenes (IoU 0.78-0.93)
+    and among the best 3 in 4 of 4; asserted with one scene of margin."""
+    det = TemplateDetector(ContourTemplates.from_arrays(query_est.refs.templates), K, proc_mesh.diameter,
+                           distance_mm=distance(proc_mesh), cache_dir=line2d_cache / "pixie" / "line2d")
+    best, top3 = 0, 0
+    for seed in range(4):
+        img, T = scene(proc_mesh, scene_parts, seed)
+        props = det.propose(img, top_k=3)
+        gt = projected_box(T, K, proc_mesh.hull_vertices)
+        ious = [box_iou(p.box_xyxy, gt) for p in props]
+        best += bool(ious and ious[0] >= 0.7)
+        top3 += max(ious, default=0.0) >= 0.7
+    assert best >= 2 and top3 >= 3, (best, top3)
+
+
+def test_find_gives_the_pose_or_not_found(query_est, proc_mesh, scene_parts, line2d_cache):
+    img, T = scene(proc_mesh, scene_parts, 1)
+    kw = dict(top_k=2, distance_mm=distance(proc_mesh), cache_dir=line2d_cache / "pixie" / "line2d")
+    fr = find_objects(query_est, img, K, **kw)
+    assert fr.found and len(fr.poses) == 1 and fr.verdicts[0] == "kept"
+    R = fr.poses[0].T_cam_from_obj
+    assert rotation_angle_deg(R[:3, :3], T[:3, :3]) < 5.0 and abs(R[2, 3] / T[2, 3] - 1) < 0.05  # measured 1.3° / 3.2 %
+    empty, _ = scene(proc_mesh, scene_parts, 9, with_part=False)
+    none = find_objects(query_est, empty, K, **kw)
+    assert not none.found and none.poses == [] and all(v.startswith("rejected") for v in none.verdicts)
+    assert json.loads(json.dumps(none.to_dict()))["found"] is False
+
+
+def test_cli_detect_writes_found_false_and_exits_0(query_est, proc_mesh, scene_parts, line2d_cache, tmp_path,
+                                                   monkeypatch):
+    from pixie.references.store import save_reference_set
+
+    refs = save_reference_set(query_est.refs, tmp_path / "part.npz")
+    empty, _ = scene(proc_mesh, scene_parts, 9, with_part=False)
+    save_png(tmp_path / "photo.png", empty)
+    monkeypatch.setenv("XDG_CACHE_HOME", str(line2d_cache))
+    lo, hi = distance(proc_mesh)
+    code, out, err = run_cli("estimate", "--refs", str(refs), "--image", str(tmp_path / "photo.png"), "--K", K_ARG,
+                             "--detect", "--distance", f"{lo:.0f},{hi:.0f}", "--proposals", "2", "-o",
+                             str(tmp_path / "r.json"), "--overlay", str(tmp_path / "o.png"))
+    assert code == 0, err
+    rec = json.loads((tmp_path / "r.json").read_text())
+    assert rec["found"] is False and rec["T_cam_from_obj"] is None and len(rec["detection"]["proposals"]) == 2
+    assert "not found" in out and (tmp_path / "o.png").is_file()
+    code, _, err = run_cli("estimate", "--refs", str(refs), "--image", str(tmp_path / "photo.png"), "--K", K_ARG,
+                           "--detect", "--bbox", "1,1,5,5")
+    assert code == 2 and "drop --bbox" in err
