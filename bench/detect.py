@@ -75,6 +75,8 @@ def main(argv=None) -> int:
              "top1_visib": bool(visib[:1] and visib[0] >= 0.5), "topk_visib": bool(max(visib, default=0) >= 0.5)}
         rows.append(r)
         per.setdefault(t.obj_id, []).append(r)
+        print(f"  {len(rows)}/{len(targets)} {t.scene_id}/{t.im_id} obj {t.obj_id}: best IoU {max(amodal, default=0):.2f} "
+              f"(visible {max(visib, default=0):.2f}), {dt:.1f} s", flush=True)
     def line(name, rs):
         m = lambda k: np.mean([r[k] for r in rs])  # noqa: E731
         return (f"| {name} | {len(rs)} | {m('top1'):.2f} | {m('topk'):.2f} | {m('top1_visib'):.2f} | "
