@@ -21,6 +21,8 @@ from pixie.synth.e2e import E2E_POSES, H, K_Q, W, e2e_config, generic_pose, pose
 
 pytestmark = pytest.mark.usefixtures("one_torch_thread")
 
+QUERY_POSES = E2E_POSES[:4]  # test_estimator's poses (tests/test_estimator.py QUERY_POSES)
+
 
 @pytest.fixture(scope="session")
 def e2e(query_e2e):
@@ -58,6 +60,8 @@ def e2e_results(e2e, proc_mesh):
     est = PoseEstimator(refs, cfg, matcher=matcher)
     out = []
     for i, (az, el, rl) in enumerate(E2E_POSES):
+        if i < len(QUERY_POSES):  # the first poses: test_estimator's (the same estimator and photos)
+            continue
         T = generic_pose(proc_mesh, az, el, rl)
         img, bbox, _ = render_photo(proc_mesh, T, K_Q, seed=i)
         res = est.estimate(img, K_Q, bbox=bbox)
@@ -73,28 +77,31 @@ def test_end_to_end_rendered_photo(e2e_results):
 
     A 46-view set at 256 px is a modest reference set. On the shipped default path (roll-0 features, rotated
     query, edge alignment) all 14 poses were within the bar in session 9 (median 0.45 deg, worst 3.1 deg / 1.4 %);
-    the matcher-only pipeline before the alignment had 25 of 28 (bench/e2e_margin.py). The bar stays on the
-    distribution, with margin for single poses that move between library versions and machines: at least 10 of
-    the 14 within 5 deg / 5 % and a median rotation error under 3.5 deg.
+    the matcher-only pipeline before the alignment had 25 of 28 (bench/e2e_margin.py). The first 4 poses are
+    test_estimator's (the same estimator and photos); this test takes the other 10. The bar stays on the
+    distribution, with margin for single poses that move between library versions and machines: at least 7 of
+    the 10 within 5 deg / 5 % and a median rotation error under 3.5 deg.
     """
     within = [rot < 5.0 and tr < 0.05 for rot, tr, _ in e2e_results]
-    errs = [(pose, f"{rot:.2f} deg", f"{100 * tr:.1f}%") for pose, (rot, tr, _) in zip(E2E_POSES, e2e_results)]
-    assert sum(within) >= 10, f"only {sum(within)} of {len(within)} poses within 5 deg / 5 %: {errs}"
+    errs = [(pose, f"{rot:.2f} deg", f"{100 * tr:.1f}%") for pose, (rot, tr, _) in zip(E2E_POSES[len(QUERY_POSES):],
+                                                                                       e2e_results)]
+    assert sum(within) >= 7, f"only {sum(within)} of {len(within)} poses within 5 deg / 5 %: {errs}"
     assert np.median([rot for rot, _, _ in e2e_results]) < 3.5, errs
 
 
 @pytest.mark.slow
 def test_end_to_end_finds_the_pose_basin(e2e, e2e_results):
     """Not the issue's bar: with modest references nearly every pose is at least as close as the nearest
-    reference view can be (the set's covering radius), and not far off in distance. A 46-view set flips
-    about one photo in ten (bench/e2e_margin.py: 2 of 28; this test: 1 of 14), so at least 11 of 14."""
+    reference view can be (the set's covering radius), and not far off in distance. A 46-view set flipped
+    about one photo in ten before the alignment (bench/e2e_margin.py: 2 of 28), so at least 8 of these 10."""
     refs, cfg, _ = e2e
     if cfg.match.matcher == "sift-nn":
         pytest.skip("SIFT does not bridge photo texture and shaded renders (measured 105-128 deg errors)")
     radius = max_angular_gap_deg(np.array([optical_axis_in_object(T) for T in refs.poses[:, 0]]))
     in_basin = [rot < radius and tr < 0.15 and not res.failed and res.n_inliers >= 20
                 for rot, tr, res in e2e_results]
-    assert sum(in_basin) >= 11, [(p, f"{r:.1f} deg", f"{100 * t:.1f}%") for p, (r, t, _) in zip(E2E_POSES, e2e_results)]
+    assert sum(in_basin) >= 8, [(p, f"{r:.1f} deg", f"{100 * t:.1f}%")
+                                for p, (r, t, _) in zip(E2E_POSES[len(QUERY_POSES):], e2e_results)]
 
 
 @pytest.mark.slow
