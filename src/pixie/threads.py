@@ -114,8 +114,9 @@ def one_thread_while_forking():
 def imports_without_gc():
     """No cyclic garbage collection while the block imports; then ``gc.freeze()`` the (long-lived) result.
 
-    Nested or already-disabled collection is left as found. Nothing imported is ever garbage, so no memory is held
-    longer than without it; ``gc.freeze`` moves those objects out of the collected generations for good.
+    Nested or already-disabled collection is left as found. Meant for a process's start (the ``pixie`` command, the
+    first matcher): ``gc.freeze`` moves every object alive then out of the collected generations for good, so
+    cyclic garbage made before it would stay; modules are never garbage.
     """
     was_enabled = gc.isenabled()
     gc.disable()

@@ -9,6 +9,7 @@ from __future__ import annotations
 
 from collections.abc import Callable, Mapping, Sequence
 from dataclasses import dataclass, field
+import sys
 from typing import Any
 
 import numpy as np
@@ -199,6 +200,8 @@ class Extractor:
 
 
 def _kornia_feature() -> Any:
+    if "kornia.feature" in sys.modules:  # imported already: no pause, no second freeze
+        return sys.modules["kornia.feature"]
     with imports_without_gc():  # kornia imports ~600 modules (pixie.threads)
         import kornia.feature as KF
 
