@@ -486,8 +486,8 @@ def cmd_run(args: argparse.Namespace) -> int:
         output_dir(args.refs_dir, what="reference-set folder")
     out = Path(args.output)
     not_an_input([out, args.refs_dir, *(out / n for n in RUN_OUTPUTS)], [args.dataset, args.config, args.detections])
-    if args.detections:
-        load_detections(args.detections)  # a malformed file is refused before hours of work start
+    # a malformed file is refused before hours of work start; the run uses the set read here
+    dets = load_detections(args.detections) if args.detections else None
     ds = BopDataset(args.dataset)
     known = sorted({t.obj_id for t in ds.targets()})
     unknown = sorted(set(objects or []) - set(known))
@@ -500,7 +500,7 @@ def cmd_run(args: argparse.Namespace) -> int:
     t0 = time.perf_counter()
     csv = run_dataset(args.dataset, args.output, cfg, objects=objects, max_targets=args.max_targets,
                       refs_dir=args.refs_dir, threads=args.threads or 1, use_ray=args.ray, address=args.address,
-                      workers=args.workers, detections=args.detections)
+                      workers=args.workers, detections=dets)
     print(f"results -> {csv} ({time.perf_counter() - t0:.0f} s); scoring")
     # the run's targets (all, or the --objects / --max-targets subset): one that ended without a pose is a miss
     run_eval(args.dataset, csv, args.output, report=not args.no_report, targets=Path(args.output) / "targets.json")

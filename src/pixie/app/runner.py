@@ -227,7 +227,7 @@ def run_dataset(dataset_root: str | Path, out_dir: str | Path, config: PixieConf
                 refs_dir: str | Path | None = None, echo: Callable[[str], None] = print,
                 show_progress: bool = True, threads: int | None = None, use_ray: bool = False,
                 address: str | None = None, workers: int | None = None,
-                detections: str | Path | None = None) -> Path:
+                detections: str | Path | DetectionSet | None = None) -> Path:
     """Estimate every target of a BOP dataset (GT ``bbox_visib`` as the crop, or the top-scoring of the BOP-format
     ``detections``, :mod:`pixie.eval.detections`) and write ``results.csv``.
 
@@ -248,7 +248,7 @@ def run_dataset(dataset_root: str | Path, out_dir: str | Path, config: PixieConf
     write_atomic(out / "targets.json", json.dumps([dict(scene_id=t.scene_id, im_id=t.im_id, obj_id=t.obj_id,
                                                         inst_count=t.inst_count) for t in targets]))
     journal = Journal(out / "per_target.jsonl", key=lambda rec: tuple(rec["key"]))
-    dets = load_detections(detections) if detections is not None else None
+    dets = detections if isinstance(detections, DetectionSet) or detections is None else load_detections(detections)
     if dets is not None:
         echo(f"{len(dets)} detections from {dets.path} (the top-scoring per target, as BOP's unseen-object protocol)")
     prints = {o: run_fingerprint(cfg, ds, o, dets) for o in sorted({t.obj_id for t in targets})}
@@ -354,7 +354,8 @@ def _process_bop(state: dict, item: list[int]) -> dict:
 
 def _crops(ds: BopDataset, t: Target, dets: DetectionSet | None) -> list[dict]:
     """What each of the target's ``inst_count`` estimates is given: a GT instance's ``bbox_visib`` (most visible
-    first), or, with external detections, the top-scoring detections' masks or boxes; None where there is none."""
+    first), or, with external detections, the top-scoring detections' masks or boxes; ``{"missing": why}`` where
+    there is none (a failed estimate naming why)."""
     if dets is not None:
         found = dets.for_target(t.scene_id, t.im_id, t.obj_id, t.inst_count)
         out = [{"bbox": d.box_xywh if d.rle is None else None, "mask": d.mask(), "detection": d} for d in found]

@@ -29,6 +29,7 @@ import numpy as np
 
 from pixie.errors import DatasetError
 from pixie.eval.datasets import box_from_bop
+from pixie.pipeline.query import bbox_from_mask
 
 __all__ = ["Detection", "DetectionSet", "load_detections", "rle_decode", "rle_encode"]
 
@@ -164,10 +165,9 @@ def _entry(i: int, d, where: str) -> Detection:
             m = rle_decode(rle)
         except ValueError as exc:
             raise bad(f"segmentation: {exc}") from exc
-        ys, xs = np.nonzero(m)
-        if len(xs) == 0:
+        if not m.any():
             raise bad("segmentation is empty (no pixel of the object)")
-        box = np.array([xs.min(), ys.min(), xs.max() - xs.min() + 1, ys.max() - ys.min() + 1], np.float64)
+        box = bbox_from_mask(m)
     t = d.get("time")
     if t is not None and (isinstance(t, bool) or not isinstance(t, (int, float)) or not math.isfinite(t)):
         raise bad(f"time must be a number of seconds, got {t!r}")

@@ -322,7 +322,7 @@ def _corner_normals(v: np.ndarray, f: np.ndarray, crease_deg: float) -> np.ndarr
     ga, gb = fn[fa], fn[fb]
     keep = ga[:, 0] * gb[:, 0] + ga[:, 1] * gb[:, 1] + ga[:, 2] * gb[:, 2] >= np.cos(np.radians(crease_deg))
     dst, src = order[a[keep]], fn_w[fb[keep]]
-    # np.bincount sums in input order, as np.add.at does (bit-identical), ~10x faster
+    # np.bincount sums in input order, as np.add.at does (bit-identical)
     out = np.stack([np.bincount(dst, weights=src[:, k], minlength=len(corner_v)) for k in range(3)], axis=1)
     norm = np.linalg.norm(out, axis=1, keepdims=True)
     out = np.where(norm > 0, out / np.maximum(norm, 1e-30), fn[corner_f])

@@ -83,9 +83,8 @@ def find_objects(est, image: np.ndarray, K: np.ndarray, top_k: int = 3, max_inst
             verdicts.append(f"rejected: confidence {res.confidence:.2f} < {min_confidence:.2f}")
         elif iou < min_box_iou:
             verdicts.append(f"rejected: the pose's box overlaps the proposal by IoU {iou:.2f} < {min_box_iou:.2f}")
-        elif any(box_iou(pb, q) >= 0.5 for _, q in kept):
+        elif (j := next((j for j, (_, q) in enumerate(kept) if box_iou(pb, q) >= 0.5), None)) is not None:
             verdicts.append("duplicate")
-            j = next(j for j, (_, q) in enumerate(kept) if box_iou(pb, q) >= 0.5)
             if res.confidence > kept[j][0].confidence:
                 kept[j] = (res, pb)
         else:

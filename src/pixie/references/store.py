@@ -138,7 +138,7 @@ def load_reference_set(path: str | Path, mesh: Mesh | str | Path | None = None) 
         with np.load(path, allow_pickle=False) as z:
             # depth and normals (~2/3 of a load's decompression) are read on first access, never by inference
             data = {k: z[k] for k in z.files if k not in _FROM_FILE}
-            data.update({k: _FileArray(path, k) for k in _FROM_FILE if k in z.files})
+            data.update({k: _FileArray(path, k, z.zip) for k in _FROM_FILE if k in z.files})
     except (zipfile.BadZipFile, zlib.error, ValueError, OSError, EOFError) as exc:
         raise ReferenceSetError(f"reference set {path} is corrupt or not a pixie file: {exc}") from exc
     if "meta" not in data:
@@ -244,9 +244,10 @@ class _FileArray:
     replaced (another build wrote the same path) raises :class:`ReferenceSetError` instead of mixing two sets.
     """
 
-    def __init__(self, path: Path, key: str):
+    def __init__(self, path: Path, key: str, zf: zipfile.ZipFile):
+        """``zf``: the file, open (its header is read from it)."""
         self.path, self.key, self._stamp = Path(path), key, _stamp(path)
-        with zipfile.ZipFile(self.path) as zf, zf.open(key + ".npy") as fh:
+        with zf.open(key + ".npy") as fh:
             fmt = np.lib.format
             header = fmt.read_array_header_1_0 if fmt.read_magic(fh) == (1, 0) else fmt.read_array_header_2_0
             self.shape, _, self.dtype = header(fh)
