@@ -158,17 +158,22 @@ class Models:
 def run_key(cfg: PixieConfig, model_path: Path, root: Path, tg: Target, det_threshold: float) -> str:
     """Cache key of one estimate. ``det_threshold`` is the threshold the matcher really uses: estimates cached
     before this script took its matcher from the config (ALIKED at its own 0.2, not the configured 0.0) differ."""
-    return _hash({"cfg": cfg.to_dict(), "model": str(model_path.relative_to(root)), "t": [tg.scene_id, tg.im_id],
+    c = cfg.to_dict()
+    c.pop("parts", None)  # the part report never runs on these one-piece PLY models: its settings change no estimate
+    return _hash({"cfg": c, "model": str(model_path.relative_to(root)), "t": [tg.scene_id, tg.im_id],
                   "data": json.loads((root / "table1.json").read_text()).get("params"), "det": det_threshold})
 
 
 def estimate_all(name: str, ds: BopDataset, variants: dict[int, dict], cfg: PixieConfig, model_kind: str,
-                 models: Models, cache: Journal, echo=print, reuse: dict | None = None) -> list[dict]:
+                 models: Models, cache: Journal, echo=print, reuse: dict | None = None,
+                 skip_target_scenes: bool = False) -> list[dict]:
     """One estimate per target. ``model_kind``: 'target' or 'defective' (the physical model). ``cache`` is the
     resumable journal of estimates (keyed by :func:`run_key`)."""
     rows = []
     root = ds.root
     targets = ds.targets()
+    if skip_target_scenes:
+        targets = [t for t in targets if variants[t.scene_id]["defect_index"] > 0]
     t_run = time.perf_counter()
     for i, tg in enumerate(targets):
         v = variants[tg.scene_id]
@@ -369,10 +374,16 @@ def main(argv=None) -> int:
     ap.add_argument("--colours", type=int, default=2)
     ap.add_argument("--images", type=int, default=1, help="images per scene")
     ap.add_argument("--seed", type=int, default=0)
+    ap.add_argument("--full-product", action="store_true", help="every defective variant in every colour variant")
+    ap.add_argument("--preset", default=None, help="estimate with this preset (e.g. default, paper) instead of the "
+                    "dataclass defaults + the cheap references " + " ".join(CHEAP_REFS))
     ap.add_argument("--regenerate", action="store_true")
     ap.add_argument("--set", action="append", default=[], metavar="SECTION.KEY=VALUE")
     ap.add_argument("--paper-refs", action="store_true", help="do not apply the cheap defaults " + " ".join(CHEAP_REFS))
     ap.add_argument("--no-ablations", action="store_true")
+    ap.add_argument("--rows", default="target,defective", help="which model rows to run (a 'defective' run alone "
+                    "skips the target scenes, whose estimates the target row makes: merge the journals, then re-run "
+                    "both rows from the cache)")
     ap.add_argument("--no-results-md", action="store_true")
     ap.add_argument("--threads", type=int, default=2)
     ap.add_argument("--extra-table1", type=Path, action="append", default=[], metavar="DATASET",
@@ -392,7 +403,7 @@ def main(argv=None) -> int:
     t_start = time.perf_counter()
     args.out.mkdir(parents=True, exist_ok=True)
     params = dict(n_assemblies=args.assemblies, n_defects=args.defects, n_colour_variants=args.colours,
-                  images_per_variant=args.images, seed=args.seed)
+                  images_per_variant=args.images, seed=args.seed, full_product=args.full_product)
     gen = ensure_dataset(args.data, params, args.regenerate)
     print("\nTable I analogue (APS at P_gt, IoU3D; in parentheses: defective models only)")
     t1 = format_table1(gen["table1"])
@@ -400,14 +411,15 @@ def main(argv=None) -> int:
 
     ds = BopDataset(args.data)
     variants = {v["scene_id"]: v for v in json.loads((args.data / "variants.json").read_text())}
-    overrides = ([] if args.paper_refs else list(CHEAP_REFS)) + list(args.set)
-    base = PixieConfig().apply_overrides(overrides)
+    overrides = ([] if (args.paper_refs or args.preset) else list(CHEAP_REFS)) + list(args.set)
+    base = (PixieConfig.from_preset(args.preset) if args.preset else PixieConfig()).apply_overrides(overrides)
     n_views = int(base.refs.n_fibonacci) + (6 if base.refs.canonical else 0)
     models = Models(args.data, args.out / "refs")
     cache = Journal(args.out / "estimates.jsonl", key=lambda rec: rec["key"])
 
-    runs: list[tuple[str, str, PixieConfig]] = [("PIXIE", "target", base)]
-    runs.append(("PIXIE", "defective", base))
+    rows_wanted = [r.strip() for r in args.rows.split(",") if r.strip()]
+    runs: list[tuple[str, str, PixieConfig]] = [("PIXIE", kind, base) for kind in ("target", "defective")
+                                                if kind in rows_wanted]
     if not args.no_ablations:
         for label, encs in ABLATIONS.items():
             if not all(e in base.refs.encodings for e in encs):
@@ -424,7 +436,8 @@ def main(argv=None) -> int:
         if label.startswith("PIXIE - "):
             est_cfg = PixieConfig.from_dict(cfg.to_dict())
             est_cfg.refs.encodings = ABLATIONS[label[len("PIXIE - "):]]
-        rows = _run_with_full_refs(name, ds, variants, cfg, est_cfg, kind, models, cache, reuse)
+        rows = _run_with_full_refs(name, ds, variants, cfg, est_cfg, kind, models, cache, reuse,
+                                   skip_target_scenes=kind == "defective" and "target" not in rows_wanted)
         if label == "PIXIE" and kind == "target":
             reuse = {(r["scene_id"], r["im_id"]): r for r in rows}
         score_rows(rows, ds, models, variants)
@@ -463,7 +476,10 @@ def main(argv=None) -> int:
         cmd = "nice .venv/bin/python bench/defects.py" + "".join(f" --set {s}" for s in args.set) + \
             ("" if args.images == 1 else f" --images {args.images}") + \
             ("" if args.assemblies == 2 else f" --assemblies {args.assemblies}") + \
-            (" --no-ablations" if args.no_ablations else "") + (" --paper-refs" if args.paper_refs else "")
+            (" --no-ablations" if args.no_ablations else "") + (" --paper-refs" if args.paper_refs else "") + \
+            (f" --preset {args.preset}" if args.preset else "") + (" --full-product" if args.full_product else "") + \
+            (f" --defects {args.defects}" if args.defects != 2 else "") + \
+            (f" --colours {args.colours}" if args.colours != 2 else "")
         n_img = gen["n_images"]
         ref_s = float(sum(models.build_seconds.values()))
         est_s = float(sum(r["time"] or 0.0 for k, rows in rows_by_run.items() for r in rows
@@ -505,7 +521,7 @@ than 150° (the near-symmetric base plates invite 180° flips); failed = no pose
     return 0
 
 
-def _run_with_full_refs(name, ds, variants, ref_cfg, est_cfg, kind, models, cache, reuse):
+def _run_with_full_refs(name, ds, variants, ref_cfg, est_cfg, kind, models, cache, reuse, skip_target_scenes=False):
     """Estimates with references built from ``ref_cfg`` (all encodings) and an estimator on ``est_cfg``."""
     orig = models.refs
 
@@ -514,7 +530,8 @@ def _run_with_full_refs(name, ds, variants, ref_cfg, est_cfg, kind, models, cach
 
     models.refs = refs_full
     try:
-        return estimate_all(name, ds, variants, est_cfg, kind, models, cache, reuse=reuse)
+        return estimate_all(name, ds, variants, est_cfg, kind, models, cache, reuse=reuse,
+                            skip_target_scenes=skip_target_scenes)
     finally:
         models.refs = orig
 

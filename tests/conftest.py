@@ -43,7 +43,7 @@ needs_lmo = pytest.mark.skipif(
 FILE_SECONDS = {"test_pipeline": 240, "test_crash_safety": 125, "test_bad_inputs": 90, "test_estimator": 70,
                 "test_batch": 60, "test_cluster": 55, "test_batch_objects": 40, "test_cli": 40, "test_runner": 25,
                 "test_edge_align": 25, "test_track": 20, "test_api": 20, "test_render_cmd": 12, "test_detect": 50,
-                "test_eval_detections": 20}
+                "test_eval_detections": 20, "test_parts": 20}
 
 
 def pytest_collection_modifyitems(config, items):

@@ -138,6 +138,9 @@ def check_value(dotted: str, annotation: str, value: Any) -> Any:
             raise ConfigError(f"{dotted} expects a list of names, got {value!r}")
         if not value:
             raise ConfigError(f"{dotted} must not be empty")
+        bad = [v for v in value if dotted in CHOICES and v not in CHOICES[dotted]]
+        if bad:
+            raise ConfigError(f"{dotted}: unknown {', '.join(map(repr, bad))}; choose from {', '.join(CHOICES[dotted])}")
         value = list(value)
     elif base == "list[float]":
         if isinstance(value, str):
@@ -366,6 +369,32 @@ RANGES.update({"align.min_contrast": (0, 1, True), "align.w_box": (0, None, True
 
 
 @dataclass
+class PartsConfig(_Section):
+    """The part report (pixie.cues.parts): each part's support at the final pose and a verdict, for meshes with parts
+    (a GLB's sub-meshes, OBJ objects, connected components). Thresholds measured on the defects benchmark
+    (bench/defects_parts.py, bench/RESULTS.md "Part verdicts")."""
+
+    enabled: bool = True  # report parts when the mesh has them (about 0.2 s per photo)
+    robust: bool = True  # re-align without the parts judged missing / displaced, then judge again (pixie.cues.parts)
+    fit_px: float = 1.5  # a part's contour pixel is supported by a same-orientation photo edge this close (crop px)
+    kinds: list[str] = field(default_factory=lambda: ["silhouette", "step", "seam"])  # contour pixels that count
+    shift_frac: float = 0.12  # displaced-part search: slide the part's contour up to this share of the box's side
+    min_points: int = 12  # fewer visible contour pixels: 'not visible'
+    min_visible: float = 0.2  # less of the part in view (hidden by other parts, outside the box / mask): 'not visible'
+    flag_below: float = 0.6  # relative support (part / median part) below which a part is flagged ('missing' ...
+    shift_gain: float = 0.4  # ... or 'displaced' when a shift raises its support by this (relative to the median)
+    found_shifted: float = 0.97  # ... to at least this share of the median part's support)
+
+
+_SECTION_NAMES[PartsConfig] = "parts"
+PART_KINDS = ("silhouette", "step", "seam", "crease")  # pixie.cues.parts.part_contours' kinds 0..3
+CHOICES["parts.kinds"] = PART_KINDS
+RANGES.update({"parts.fit_px": (0, 100, False), "parts.shift_frac": (0, 1, True), "parts.min_points": (1, None, True),
+               "parts.min_visible": (0, 1, True), "parts.flag_below": (0, None, True), "parts.shift_gain": (0, None, True),
+               "parts.found_shifted": (0, None, True)})
+
+
+@dataclass
 class PixieConfig:
     refs: RefsConfig = field(default_factory=RefsConfig)
     query: QueryConfig = field(default_factory=QueryConfig)
@@ -374,6 +403,7 @@ class PixieConfig:
     refine: RefineConfig = field(default_factory=RefineConfig)
     shape: ShapeConfig = field(default_factory=ShapeConfig)
     align: AlignConfig = field(default_factory=AlignConfig)
+    parts: PartsConfig = field(default_factory=PartsConfig)
     preset: str | None = field(default=None, compare=False)  # name of the preset it started from (None: dataclass defaults)
 
     def to_dict(self) -> dict[str, Any]:

@@ -126,6 +126,33 @@ def overlay_result(image: np.ndarray, renderer: Renderer, T: np.ndarray | None, 
     return out
 
 
+VERDICT_COLORS = {"present": (40, 200, 60), "missing": (235, 30, 30), "displaced": (255, 150, 0),
+                  "not visible": (150, 150, 150)}
+
+
+def draw_parts(image: np.ndarray, parts, radius: int = 1) -> np.ndarray:
+    """The part report drawn on ``image``: every part's contour points coloured by its verdict (present green,
+    missing red, displaced orange, not visible grey) and the suspect parts' names next to them.
+
+    ``parts``: :class:`pixie.cues.parts.PartSupport` records (``uv`` photo px, ``verdict``, ``name``).
+    """
+    out = _rgb(image).copy()
+    for p in sorted(parts, key=lambda p: p.verdict in ("missing", "displaced")):  # suspects drawn last (on top)
+        col = VERDICT_COLORS.get(p.verdict, (255, 255, 255))
+        for u, v in np.rint(np.asarray(p.uv)).astype(int):
+            cv2.circle(out, (int(u), int(v)), radius, col, -1)
+    h = out.shape[0]
+    scale = max(0.35, min(0.8, h / 1200))
+    for p in parts:
+        if p.verdict in ("missing", "displaced") and len(p.uv):
+            u, v = np.asarray(p.uv).mean(axis=0)
+            org = (int(u) + 4, int(v))
+            text = f"{p.name}: {p.verdict}"
+            cv2.putText(out, text, org, cv2.FONT_HERSHEY_SIMPLEX, scale, (0, 0, 0), 3, cv2.LINE_AA)
+            cv2.putText(out, text, org, cv2.FONT_HERSHEY_SIMPLEX, scale, VERDICT_COLORS[p.verdict], 1, cv2.LINE_AA)
+    return out
+
+
 def status_view(overlay: np.ndarray, box_xyxy: np.ndarray | None, failed: bool, message: str = "",
                 detail: str = "", zoom_frac: float = 0.4) -> np.ndarray:
     """The overlay with what a person needs at a glance: a banner on top (green "OK" or red "FAILED: reason",

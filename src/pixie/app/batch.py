@@ -56,7 +56,7 @@ from pixie.pipeline.query import bbox_from_mask, check_bbox, load_image
 from pixie.pose.results import NO_BOX_WHY
 from pixie.references.store import ensure_templates, load_reference_set
 from pixie.geometry.render import Renderer
-from pixie.viz import encode_png, overlay_result, pose_detail, status_view
+from pixie.viz import draw_parts, encode_png, overlay_result, pose_detail, status_view
 from pixie.synth.check import pose_error
 from pixie.weights import sha256_file
 
@@ -243,6 +243,8 @@ def _process(state: dict, job: dict) -> dict:
             box = check_bbox(bbox, image.shape[:2])
             label = f"conf {res.confidence:.2f}"
             ov = overlay_result(image, state["renderer"][job["refs"]], res.T_cam_from_obj, K, box, label)
+            if res.part_support:
+                ov = draw_parts(ov, res.part_support)
             rec["overlay_png"] = encode_png(status_view(ov, box, res.failed, res.message, pose_detail(res)))
     except PixieError as exc:
         rec["result"] = {"T_cam_from_obj": None, "failed": True, "message": f"{type(exc).__name__}: {exc}",
@@ -394,8 +396,20 @@ def _photo_overlays(records: list[dict], out: Path) -> None:
             r["photo_overlay"] = name
 
 
+def suspect_first(records: list[dict]) -> list[dict]:
+    """Records ordered for an inspector: photos with suspect parts first (most first), then the rest, each group in
+    batch order."""
+    def n_suspect(r: dict) -> int:
+        return sum(p.get("verdict") in ("missing", "displaced") for p in r["result"].get("parts") or [])
+
+    return sorted(records, key=lambda r: (-n_suspect(r), r["row"]))
+
+
 def _html(records: list[dict], n_total: int, config: PixieConfig) -> str:
     rows = []
+    with_parts = any(r["result"].get("parts") for r in records)
+    if with_parts:
+        records = suspect_first(records)
     for r in records:
         res = r["result"]
         T = res.get("T_cam_from_obj")
@@ -407,12 +421,18 @@ def _html(records: list[dict], n_total: int, config: PixieConfig) -> str:
         shown = r.get("photo_overlay") or r.get("overlay")  # every object of the photo, when it has several
         img = (f'<a href="{html.escape(shown)}"><img src="{html.escape(shown)}" width="480"></a>'
                if shown else "")
+        if with_parts:
+            sus = [p for p in res.get("parts") or [] if p.get("verdict") in ("missing", "displaced")]
+            status += "<br>" + ("<b>suspect parts:</b> " + ", ".join(
+                f"{html.escape(p['name'])} ({p['verdict']}, support {p['support']:.2f})" for p in sus)
+                if sus else "parts: none suspect")
         rows.append(f"<tr><td>{r['row']}</td><td>{html.escape(r['name'])}</td><td>{img}</td><td>{status}</td>"
                     f"<td>{res.get('score', 0):.2f}</td><td>{res.get('confidence', 0):.2f}</td><td>{rv}</td><td>{t}</td><td>{err}</td>"
                     f"<td>{r['time_s']:.1f}</td></tr>")
     return f"""<!doctype html><html><head><meta charset="utf-8"><title>pixie batch</title>
 <style>body{{font-family:sans-serif}} td{{padding:4px;vertical-align:top;border-bottom:1px solid #ddd}}</style></head>
 <body><h1>pixie batch: {len(records)} of {n_total} images done</h1>
+{"<p>Part report: photos with suspect (missing or displaced) parts come first; on the overlays parts are green (present), red (missing), orange (displaced), grey (not visible).</p>" if with_parts else ""}
 <p>preset {html.escape(str(config.preset))}, config digest {config.digest()}. Overlay: model contour at the estimate (red),
 object axes at its origin (x red, y green, z blue), the given box (yellow). Confidence = best score / (best + second
 distinct hypothesis's score) without the alignment; with it (presets default, fast) the calibrated probability that the

@@ -47,7 +47,7 @@ from pixie.app.notes import annotate, collect_warnings
 from pixie.app.signals import Terminated, on_sigterm, say_terminated
 from pixie.app.track import Frame, Tracker, frame_paths, read_pose_file
 from pixie.synth.check import BACKGROUNDS, check_scene, pose_error
-from pixie.viz import contact_sheet, overlay_result, pose_detail, save_png, status_view
+from pixie.viz import contact_sheet, draw_parts, overlay_result, pose_detail, save_png, status_view
 from pixie.weights import cache_dir, sha256_file, weights_status
 
 
@@ -225,6 +225,8 @@ def _estimate_one(args: argparse.Namespace, notes) -> int:
         box = check_bbox(bbox if bbox is not None else bbox_from_mask(mask), image.shape[:2])
         if mask is not None:
             check_query_mask(mask, image.shape[:2], box)
+    if getattr(args, "inspect", False):
+        _needs_parts(refs.mesh)
     _matcher_for(refs, cfg, args)
     est = PoseEstimator(refs, cfg)
     if args.detect:
@@ -259,6 +261,10 @@ def _estimate_one(args: argparse.Namespace, notes) -> int:
         print(f"error against --gt: rotation {gt_err['rot_deg']:.2f} deg, translation {gt_err['trans_mm']:.1f} mm "
               f"(depth {gt_err['depth_pct']:.2f} %), ADD {gt_err['add_mm']:.1f} mm "
               f"({100 * gt_err['add_mm'] / refs.mesh.diameter:.1f} % of the {refs.mesh.diameter:.0f} mm diameter)")
+    if res.parts:
+        print(part_report_text(res))
+    elif getattr(args, "inspect", False) and not res.failed:
+        print("no part report: config parts.enabled is false")
     print("timings (s): " + ", ".join(f"{k} {v:.2f}" for k, v in res.timings.items()))
     if out_json:
         record = res.to_dict()
@@ -271,10 +277,28 @@ def _estimate_one(args: argparse.Namespace, notes) -> int:
     if out_png:
         label = f"confidence {res.confidence:.2f}"
         ov = overlay_result(image, Renderer(refs.mesh), T, K, res.box_xyxy, label)
+        if res.part_support:
+            ov = draw_parts(ov, res.part_support)
         save_png(out_png, status_view(ov, res.box_xyxy, res.failed, res.message, pose_detail(res, gt_err)),
                  force=args.force)
         print(f"overlay -> {out_png}")
     return 1 if res.failed else 0
+
+
+def part_report_text(res) -> str:
+    """The part report for people: suspect parts first, then the others, one line each."""
+    order = {"missing": 0, "displaced": 1, "present": 2, "not visible": 3}
+    rows = sorted(res.parts, key=lambda p: (order.get(p["verdict"], 9), p["index"]))
+    sus = res.suspect_parts
+    head = (f"parts: {len(sus)} suspect ({', '.join(sus)})" if sus else "parts: no part missing or displaced") + \
+        f" of {len(rows)}" + (" (the pose itself is doubtful: confidence "
+                              f"{res.confidence:.2f})" if res.confidence < 0.5 else "")
+    lines = [head]
+    for p in rows:
+        extra = f", best shifted {p['shifted_support']:.2f} at {p['shift_px']:.0f} px" if p["verdict"] == "displaced" else ""
+        lines.append(f"  {p['name']:<28s} {p['verdict']:<11s} support {p['support']:.2f} "
+                     f"(x{p['relative']:.2f} of the median part), {100 * p['visible']:.0f} % visible{extra}")
+    return "\n".join(lines)
 
 
 def _estimate_detect(args: argparse.Namespace, est: PoseEstimator, image, K, out_json, out_png) -> int:
@@ -315,6 +339,14 @@ def _estimate_detect(args: argparse.Namespace, est: PoseEstimator, image, K, out
     return 0
 
 
+def _needs_parts(mesh) -> None:
+    """``pixie inspect``: refuse a one-piece mesh, saying what file would do."""
+    if mesh.n_parts < 2:
+        raise UsageError(f"inspect needs a mesh with parts; {mesh.name!r} is one piece. Give a GLB / glTF with one "
+                         "sub-mesh per part (or an OBJ with objects, or a mesh whose parts are separate connected "
+                         "components) and build its references from that file")
+
+
 def _estimate_batch(args: argparse.Namespace) -> int:
     if args.image or args.mask or args.overlay:
         raise PixieError("--batch takes a folder or a manifest; --image/--mask/--overlay are for one photo")
@@ -337,6 +369,8 @@ def _estimate_batch(args: argparse.Namespace) -> int:
     refs_path = None
     if len(own) < len(items) or args.refs or args.mesh:
         refs, refs_path = _refs_for_estimate(args, cfg, shared_refs)
+        if getattr(args, "inspect", False):
+            _needs_parts(refs.mesh)
         _matcher_for(refs, cfg, args)
         del refs
     built: dict[Path, Path] = {}
@@ -507,6 +541,38 @@ def cmd_run(args: argparse.Namespace) -> int:
     return 0
 
 
+def _add_estimate_args(e: argparse.ArgumentParser) -> None:
+    """The options of ``estimate`` (and ``inspect``)."""
+    e.add_argument("--refs", help="reference set (.npz) from `pixie refs build`")
+    e.add_argument("--mesh", help="or the CAD model: references are built once with the preset and cached")
+    _add_units_arg(e, "--mesh")
+    e.add_argument("--image", help="one photo")
+    e.add_argument("--batch", metavar="FOLDER|MANIFEST", help="many photos: a folder (with --K and --bbox or --masks) "
+                   "or a CSV/JSON manifest with image, K, bbox or mask per row; resumable; needs -o OUT_FOLDER")
+    e.add_argument("--K", help="intrinsics fx,fy,cx,cy (OpenCV, pixels)")
+    e.add_argument("--bbox", help="object box x,y,w,h in pixels, w and h counting pixels (BOP files store one less: "
+                   "add 1); or give --mask. One of them is required")
+    e.add_argument("--mask", help="object mask image (white = object)")
+    e.add_argument("--gt", help="the true pose (JSON, e.g. gt_pose.json from `pixie render`): prints the rotation, "
+                   "translation and ADD error of the estimate and adds them to the result JSON")
+    e.add_argument("--init-pose", help="a starting pose (JSON: a pixie result, R and t in mm, or BOP cam_R_m2c / "
+                   "cam_t_m2c) refined by edge alignment instead of searching all views; --bbox optional")
+    e.add_argument("--detect", action="store_true", help="no box: search the whole photo for the object (LINE-2D "
+                   "proposals from its contour templates, each verified by its pose; 'not found' is a result)")
+    e.add_argument("--distance", help="--detect: the object's distance range MIN,MAX in mm (default: any that makes "
+                   "it 60-360 px across); a narrower range is faster and finds it more reliably")
+    e.add_argument("--proposals", type=int, default=3, help="--detect: proposals estimated (default 3)")
+    e.add_argument("--instances", type=int, default=1, help="--detect: at most this many instances (default 1)")
+    e.add_argument("--masks", help="--batch FOLDER: folder of masks named like the images")
+    e.add_argument("-o", "--output", help="result JSON (one photo) or output folder (--batch)")
+    e.add_argument("--overlay", help="PNG with the model drawn at the estimate")
+    e.add_argument("--no-overlays", action="store_true", help="--batch: skip the overlay pictures")
+    e.add_argument("--max-items", type=int, help="--batch: stop after this many new images (resume later)")
+    _add_parallel_args(e)
+    e.add_argument("--force", action="store_true", help="replace existing output files")
+    _add_config_args(e)
+
+
 def build_parser() -> argparse.ArgumentParser:
     p = argparse.ArgumentParser(prog="pixie", description="6D object pose from one RGB photo and an untextured CAD model")
     p.add_argument("-v", "--verbose", action="store_true")
@@ -540,35 +606,13 @@ def build_parser() -> argparse.ArgumentParser:
     s.set_defaults(func=cmd_refs_show)
 
     e = sub.add_parser("estimate", help="estimate the pose of the object in one photo, or in a folder / manifest of photos")
-    e.add_argument("--refs", help="reference set (.npz) from `pixie refs build`")
-    e.add_argument("--mesh", help="or the CAD model: references are built once with the preset and cached")
-    _add_units_arg(e, "--mesh")
-    e.add_argument("--image", help="one photo")
-    e.add_argument("--batch", metavar="FOLDER|MANIFEST", help="many photos: a folder (with --K and --bbox or --masks) "
-                   "or a CSV/JSON manifest with image, K, bbox or mask per row; resumable; needs -o OUT_FOLDER")
-    e.add_argument("--K", help="intrinsics fx,fy,cx,cy (OpenCV, pixels)")
-    e.add_argument("--bbox", help="object box x,y,w,h in pixels, w and h counting pixels (BOP files store one less: "
-                   "add 1); or give --mask. One of them is required")
-    e.add_argument("--mask", help="object mask image (white = object)")
-    e.add_argument("--gt", help="the true pose (JSON, e.g. gt_pose.json from `pixie render`): prints the rotation, "
-                   "translation and ADD error of the estimate and adds them to the result JSON")
-    e.add_argument("--init-pose", help="a starting pose (JSON: a pixie result, R and t in mm, or BOP cam_R_m2c / "
-                   "cam_t_m2c) refined by edge alignment instead of searching all views; --bbox optional")
-    e.add_argument("--detect", action="store_true", help="no box: search the whole photo for the object (LINE-2D "
-                   "proposals from its contour templates, each verified by its pose; 'not found' is a result)")
-    e.add_argument("--distance", help="--detect: the object's distance range MIN,MAX in mm (default: any that makes "
-                   "it 60-360 px across); a narrower range is faster and finds it more reliably")
-    e.add_argument("--proposals", type=int, default=3, help="--detect: proposals estimated (default 3)")
-    e.add_argument("--instances", type=int, default=1, help="--detect: at most this many instances (default 1)")
-    e.add_argument("--masks", help="--batch FOLDER: folder of masks named like the images")
-    e.add_argument("-o", "--output", help="result JSON (one photo) or output folder (--batch)")
-    e.add_argument("--overlay", help="PNG with the model drawn at the estimate")
-    e.add_argument("--no-overlays", action="store_true", help="--batch: skip the overlay pictures")
-    e.add_argument("--max-items", type=int, help="--batch: stop after this many new images (resume later)")
-    _add_parallel_args(e)
-    e.add_argument("--force", action="store_true", help="replace existing output files")
-    _add_config_args(e)
-    e.set_defaults(func=cmd_estimate)
+    _add_estimate_args(e)
+    e.set_defaults(func=cmd_estimate, inspect=False)
+    ins = sub.add_parser("inspect", help="pose + part report: is every part of the assembly where the CAD model has "
+                         "it? (the mesh needs parts: a GLB/glTF with one sub-mesh per part, OBJ objects, or separate "
+                         "connected components); the same options as estimate")
+    _add_estimate_args(ins)
+    ins.set_defaults(func=cmd_estimate, inspect=True)
 
     r = sub.add_parser("run", help="run the estimator over a BOP dataset (resumable) and score it")
     r.add_argument("dataset", help="BOP dataset folder (with test/, models/, test_targets_bop19.json)")

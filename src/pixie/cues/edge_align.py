@@ -26,6 +26,9 @@ same-orientation photo edge; it predicts whether a pose is right (the estimator'
 >>> pe = photo_edges(image, K, box_xyxy)                                  # once per photo
 >>> res = align(renderer, pe, T0, hull=mesh.hull_vertices, w_box=1.0)    # AlignResult: pose, fit, iterations
 >>> fit = edge_fit(renderer, pe, res.T_cam_from_obj)                      # EdgeFit
+
+Longer than 500 lines on purpose: the matching, the LM step, its robust cost and the fit share one set of per-point
+conventions (crop px, half-pixel silhouette offsets, orientation bins) that splitting would spread over modules.
 """
 
 from __future__ import annotations
@@ -43,7 +46,7 @@ from pixie.geometry.rotations import rodrigues
 from pixie.references.templates import CREASE, SILHOUETTE, view_points
 
 __all__ = ["PhotoEdges", "AlignResult", "EdgeFit", "photo_edges", "model_points", "align", "edge_fit",
-           "flip_twins"]
+           "edge_distances", "flip_twins"]
 
 
 @dataclass(kw_only=True)
@@ -96,6 +99,13 @@ class ModelPoints:
     outward: np.ndarray  # (N, 2) unit outward normal of silhouette points, 0 for creases
     T_render: np.ndarray  # the pose they were rendered at
     mask: np.ndarray  # (size, size) bool, the render's silhouette
+    tri: np.ndarray | None = None  # (N,) the mesh triangle under each point (parts: mesh.face_parts[tri])
+
+    def subset(self, keep: np.ndarray) -> "ModelPoints":
+        """The points where ``keep`` (N,) is true."""
+        return ModelPoints(xyz=self.xyz[keep], kind=self.kind[keep], ori=self.ori[keep], offset=self.offset[keep],
+                           outward=self.outward[keep], T_render=self.T_render, mask=self.mask,
+                           tri=None if self.tri is None else self.tri[keep])
 
 
 def model_points(renderer: Renderer, T: np.ndarray, K: np.ndarray, size: int, n_points: int = 240,
@@ -120,7 +130,8 @@ def model_points(renderer: Renderer, T: np.ndarray, K: np.ndarray, size: int, n_
     n /= np.maximum(np.linalg.norm(n, axis=1, keepdims=True), 1e-9)
     sil = (kind == SILHOUETTE)[:, None]
     return ModelPoints(xyz=xyz, kind=kind, ori=np.asarray(ori, np.float64), offset=np.where(sil, 0.5 * n, 0.0),
-                       outward=np.where(sil, n, 0.0), T_render=np.asarray(T, np.float64).copy(), mask=m)
+                       outward=np.where(sil, n, 0.0), T_render=np.asarray(T, np.float64).copy(), mask=m,
+                       tri=r.tri_ids[P[:, 1], P[:, 0]].astype(np.int64))
 
 
 def foreground_map(pe: PhotoEdges, mask: np.ndarray, band_frac: float = 0.15) -> np.ndarray:
@@ -386,7 +397,7 @@ def align(renderer: Renderer, pe: PhotoEdges, T0: np.ndarray, center: np.ndarray
           hull: np.ndarray | None = None, coarse: PhotoEdges | None = None,
           coarse_schedule: tuple[float, ...] = (8.0, 4.0), out_cost: float = 1.0,
           matches: tuple[np.ndarray, np.ndarray] | None = None, w_matches: float = 0.0,
-          match_px: float = 10.0) -> AlignResult:
+          match_px: float = 10.0, face_parts: np.ndarray | None = None, drop_parts=()) -> AlignResult:
     """Levenberg–Marquardt alignment of ``T0`` (photo camera) to the photo's edges, coarse to fine.
 
     Parameters
@@ -410,6 +421,8 @@ def align(renderer: Renderer, pe: PhotoEdges, T0: np.ndarray, center: np.ndarray
     matches, w_matches, match_px : 2D–3D correspondences (photo px (n, 2), object mm (n, 3)), e.g. the PnP inliers
         the start was solved from, as residuals of total weight ``w_matches`` x the contour points', Tukey scale
         ``max(match_px, tau)`` crop px: interior evidence the silhouette does not give; None or 0 = unused
+    face_parts, drop_parts : the mesh's part index per triangle and parts whose points are left out (parts the
+        photo does not support, e.g. a missing part: :func:`pixie.cues.parts.robust_part_fit`)
     """
     center = renderer.mesh.center if center is None else np.asarray(center, np.float64)
     cfg = {"max_bin_gap": int(max_bin_gap), "bin_penalty": float(bin_penalty), "crease_weight": float(crease_weight),
@@ -432,6 +445,9 @@ def align(renderer: Renderer, pe: PhotoEdges, T0: np.ndarray, center: np.ndarray
         for tau in sched:
             for _ in range(max(rerender, 1)):
                 mp = model_points(renderer, T, K, lv.size, n_points, crease_share)
+                if mp is not None and face_parts is not None and len(drop_parts):
+                    mp = mp.subset(~np.isin(np.asarray(face_parts)[mp.tri], np.asarray(list(drop_parts))))
+                    mp = mp if len(mp.xyz) >= 6 else None
                 if mp is None:
                     break
                 if min_contrast > 0:
@@ -460,6 +476,18 @@ def align(renderer: Renderer, pe: PhotoEdges, T0: np.ndarray, center: np.ndarray
                        converged=converged, history=history)
 
 
+def edge_distances(pe: PhotoEdges, p: np.ndarray, ori: np.ndarray, max_bin_gap: int = 1,
+                   fit_px: float = 1.5) -> tuple[np.ndarray, np.ndarray]:
+    """Directional chamfer distance of points ``p`` (crop px, orientations ``ori``) to the nearest edge within
+    ``max_bin_gap`` orientation bins: sub-pixel (to the matched edge's line) within ``fit_px`` + 1 px, the
+    distance transform's beyond. Returns (distance (N,), 1e4 where none; the point lies in the allowed region (N,))."""
+    cost, edge, inside = _match(pe, p, ori, max_bin_gap, 0.0)
+    d = np.full(len(p), 1e4)
+    ok = edge >= 0
+    d[ok] = np.abs(np.einsum("ij,ij->i", pe.edge_dir[edge[ok]], p[ok] - pe.edge_xy[edge[ok]]))
+    return np.where(cost < fit_px + 1.0, np.minimum(d, cost), cost), inside
+
+
 def edge_fit(renderer: Renderer, pe: PhotoEdges, T: np.ndarray, n_points: int = 240, fit_px: float = 1.5,
              max_bin_gap: int = 1, crease_share: float = 0.3) -> EdgeFit:
     """The aligned fit of pose ``T``: see :class:`EdgeFit`."""
@@ -467,14 +495,9 @@ def edge_fit(renderer: Renderer, pe: PhotoEdges, T: np.ndarray, n_points: int = 
     if mp is None:
         return EdgeFit(share=0.0, silhouette_share=0.0, visible=0.0, mean_dist=float("inf"), n_points=0)
     p = _project(pe.K, mp.xyz @ T[:3, :3].T + T[:3, 3]) + mp.offset
-    cost, edge, inside = _match(pe, p, mp.ori, max_bin_gap, 0.0)
+    d, inside = edge_distances(pe, p, mp.ori, max_bin_gap, fit_px)
     if not inside.any():
         return EdgeFit(share=0.0, silhouette_share=0.0, visible=0.0, mean_dist=float("inf"), n_points=0)
-    # distance to the matched edge's line (sub-pixel), not the pixel distance transform
-    d = np.full(len(p), 1e4)
-    ok = edge >= 0
-    d[ok] = np.abs(np.einsum("ij,ij->i", pe.edge_dir[edge[ok]], p[ok] - pe.edge_xy[edge[ok]]))
-    d = np.where(cost < fit_px + 1.0, np.minimum(d, cost), cost)
     hit = d <= fit_px
     sil = mp.kind == SILHOUETTE
     vis_sil = inside & sil

@@ -1,7 +1,12 @@
-"""Loading CAD meshes (PLY / OBJ / STL / GLB) in millimetres, with validation.
+"""Loading CAD meshes (PLY / OBJ / STL / GLB) in millimetres, with validation, and their parts.
 
 pixie works in millimetres throughout. Meshes in metres (a classic 1000x mistake) are
 detected from their size and either converted (``units='auto'``) or warned about.
+
+Parts (``Mesh.face_parts``, ``Mesh.part_names``): the named sub-meshes of a multi-mesh file (GLB / glTF
+scene nodes, OBJ objects), else the connected components of a single mesh when there are 2 to
+``MAX_COMPONENT_PARTS`` of them; components under ``MIN_PART_AREA`` of the surface join the part they are
+nearest to. A mesh without parts has ``face_parts is None``.
 """
 
 from __future__ import annotations
@@ -22,6 +27,8 @@ log = logging.getLogger(__name__)
 UNIT_SCALE = {"mm": 1.0, "cm": 10.0, "m": 1000.0}
 # Plausible diameters of a part seen by a camera, in mm: a screw head to a car door.
 PLAUSIBLE_DIAMETER_MM = (2.0, 5000.0)
+MAX_COMPONENT_PARTS = 64  # more connected components than this are a scan's fragments, not an assembly's parts
+MIN_PART_AREA = 0.01  # share of the surface below which a connected component is a speck, not a part
 
 
 @dataclass
@@ -38,6 +45,10 @@ class Mesh:
         SHA-256 of the file bytes (or of the arrays for in-memory meshes); reference sets record it.
     file_units : str
         Units the file was read in ('mm', 'cm', 'm'); ``units_auto`` says whether ``units='auto'`` chose them.
+    face_parts : (F,) int32 or None
+        Part index of every triangle (see the module docstring), None for a mesh without parts.
+    part_names : tuple of str
+        One name per part (empty without parts).
     """
 
     vertices: np.ndarray
@@ -47,9 +58,32 @@ class Mesh:
     source_hash: str = ""
     file_units: str = "mm"
     units_auto: bool = False
+    face_parts: np.ndarray | None = None
+    part_names: tuple[str, ...] = ()
     _diameter: float | None = field(default=None, repr=False)
     _corner_normals: np.ndarray | None = field(default=None, repr=False)
     _hull_vertices: np.ndarray | None = field(default=None, repr=False)
+
+    @property
+    def n_parts(self) -> int:
+        """Number of parts (0 for a mesh without parts)."""
+        return len(self.part_names) if self.face_parts is not None else 0
+
+    def with_parts(self, face_parts: np.ndarray | None, part_names=()) -> "Mesh":
+        """This mesh with the given part labels (checked: one per face, names for every index, >= 2 parts)."""
+        if face_parts is None:
+            self.face_parts, self.part_names = None, ()
+            return self
+        fp = np.asarray(face_parts)
+        names = tuple(str(n) for n in part_names)
+        if fp.shape != (len(self.faces),) or not np.issubdtype(fp.dtype, np.integer):
+            raise MeshError(f"mesh {self.name!r}: face_parts must be one integer per face ({len(self.faces)}), "
+                            f"got shape {fp.shape} of {fp.dtype}")
+        if len(names) < 2 or fp.min() < 0 or fp.max() >= len(names):
+            raise MeshError(f"mesh {self.name!r}: face_parts index {len(names)} part name(s); need >= 2 parts "
+                            f"and indices 0..{len(names) - 1}, got {int(fp.min())}..{int(fp.max())}")
+        self.face_parts, self.part_names = fp.astype(np.int32), names
+        return self
 
     @property
     def bbox_min(self) -> np.ndarray:
@@ -190,7 +224,10 @@ def load_mesh(path: str | Path, units: str = "auto", implausible: str = "warn") 
     try:
         with warnings.catch_warnings():
             warnings.simplefilter("ignore")
-            loaded = trimesh.load(path, force="mesh", process=False)
+            raw = trimesh.load(path, process=False)
+            loaded, face_parts, part_names = _scene_parts(raw)
+            if loaded is None:
+                loaded = trimesh.load(path, force="mesh", process=False)
     except Exception as exc:  # trimesh raises many types on corrupt files
         raise MeshError(f"cannot read mesh {path}: {type(exc).__name__}: {exc}") from exc
     if not isinstance(loaded, trimesh.Trimesh):
@@ -205,8 +242,8 @@ def load_mesh(path: str | Path, units: str = "auto", implausible: str = "warn") 
     # STL (and some OBJ/GLB exports) repeat every vertex per face: weld equal positions so that
     # smooth normals and adjacency do not depend on the file format.
     if len(loaded.vertices) and np.all(np.isfinite(loaded.vertices)):  # NaNs are reported below
-        loaded.merge_vertices(merge_tex=True, merge_norm=True)
-    return _finish(
+        loaded.merge_vertices(merge_tex=True, merge_norm=True)  # keeps the faces and their order
+    mesh = _finish(
         np.asarray(loaded.vertices, dtype=np.float64),
         np.asarray(loaded.faces),
         path.stem,
@@ -214,6 +251,78 @@ def load_mesh(path: str | Path, units: str = "auto", implausible: str = "warn") 
         units,
         implausible,
     )
+    if face_parts is None:
+        face_parts, part_names = component_parts(mesh.vertices, mesh.faces)
+    return mesh.with_parts(face_parts, part_names)
+
+
+def _scene_parts(raw) -> tuple[object | None, np.ndarray | None, tuple[str, ...]]:
+    """(one Trimesh, part index per face, part names) of a file holding >= 2 triangle meshes; (None, None, ())
+    otherwise (the caller loads it as one mesh). Node transforms are applied; nodes are taken in name order."""
+    import trimesh
+
+    if not isinstance(raw, trimesh.Scene):
+        return None, None, ()
+    items = []
+    for node in sorted(raw.graph.nodes_geometry):
+        T, geom = raw.graph[node]
+        g = raw.geometry.get(geom)
+        if isinstance(g, trimesh.Trimesh) and len(g.faces):
+            items.append((str(node), g, np.asarray(T, np.float64)))
+    if len(items) < 2:
+        return None, None, ()
+    verts, faces, parts, off = [], [], [], 0
+    for k, (_name, g, T) in enumerate(items):
+        v = np.asarray(g.vertices, np.float64) @ T[:3, :3].T + T[:3, 3]
+        verts.append(v)
+        faces.append(np.asarray(g.faces, np.int64) + off)
+        parts.append(np.full(len(g.faces), k, np.int32))
+        off += len(v)
+    mesh = trimesh.Trimesh(np.concatenate(verts), np.concatenate(faces), process=False)
+    return mesh, np.concatenate(parts), tuple(name for name, _g, _T in items)
+
+
+def component_parts(vertices: np.ndarray, faces: np.ndarray) -> tuple[np.ndarray | None, tuple[str, ...]]:
+    """Connected components (faces sharing a vertex) as parts: (part index per face, names), or (None, ())
+    when there is one component, more than ``MAX_COMPONENT_PARTS``, or fewer than 2 above ``MIN_PART_AREA``.
+    Specks (below ``MIN_PART_AREA`` of the surface) join the part whose centroid is nearest to theirs."""
+    from scipy.sparse import coo_matrix
+    from scipy.sparse.csgraph import connected_components
+
+    f = np.asarray(faces, np.int64)
+    nv = len(vertices)
+    rows = np.repeat(np.arange(len(f)), 3)
+    g = coo_matrix((np.ones(len(rows), np.int8), (rows, f.ravel())), shape=(len(f), nv)).tocsr()
+    # faces and vertices as one bipartite graph: components of faces through shared vertices
+    _, lab = connected_components(_bipartite(g), directed=False)
+    face_lab = lab[: len(f)]
+    uniq, face_lab = np.unique(face_lab, return_inverse=True)
+    if len(uniq) < 2 or len(uniq) > MAX_COMPONENT_PARTS:
+        return None, ()
+    tri = np.asarray(vertices, np.float64)[f]
+    area = 0.5 * np.linalg.norm(np.cross(tri[:, 1] - tri[:, 0], tri[:, 2] - tri[:, 0]), axis=1)
+    comp_area = np.bincount(face_lab, weights=area, minlength=len(uniq))
+    cent = np.stack([np.bincount(face_lab, weights=area * tri[:, :, d].mean(1), minlength=len(uniq))
+                     for d in range(3)], 1) / np.maximum(comp_area, 1e-12)[:, None]
+    big = np.flatnonzero(comp_area >= MIN_PART_AREA * comp_area.sum())
+    if len(big) < 2:
+        return None, ()
+    # order parts by area (largest first) so that indices are stable under vertex renumbering
+    big = big[np.argsort(-comp_area[big], kind="stable")]
+    to_part = np.empty(len(uniq), np.int32)
+    to_part[big] = np.arange(len(big))
+    small = np.setdiff1d(np.arange(len(uniq)), big)
+    if len(small):
+        d = np.linalg.norm(cent[small, None] - cent[None, big], axis=2)
+        to_part[small] = np.argmin(d, axis=1)
+    return to_part[face_lab].astype(np.int32), tuple(f"component_{k:02d}" for k in range(len(big)))
+
+
+def _bipartite(face_vertex):
+    """Symmetric adjacency of the (faces + vertices) graph from a (F, V) incidence matrix."""
+    from scipy.sparse import bmat
+
+    return bmat([[None, face_vertex], [face_vertex.T, None]]).tocsr()
 
 
 def _no_triangles_message(path: Path, n_loaded: int) -> str:

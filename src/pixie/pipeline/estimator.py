@@ -45,7 +45,7 @@ from pixie.geometry.camera import (
     rotation_angle_deg,
     validate_pose,
 )
-from pixie.config import PixieConfig
+from pixie.config import PART_KINDS, PixieConfig
 from pixie.errors import ConfigError, ImageError
 from pixie.features import Features
 from pixie.geometry.rotations import check_image
@@ -69,6 +69,7 @@ from pixie.cues.refine import aligned_correspondences, render_in_crop
 from pixie.geometry.render import Renderer
 from pixie.cues.edge_align import align, edge_fit, flip_twins, photo_edges
 from pixie.cues.edges import EdgeQuery
+from pixie.cues.parts import judge_parts, part_renderers, part_support, robust_part_fit
 from pixie.cues.shape import fused_score, shape_cues
 from pixie.pose.results import NO_BOX_MESSAGE, Hypothesis, PoseResult, set_confidences
 from pixie.references.views import roll_angles
@@ -182,6 +183,7 @@ class PoseEstimator:
         self._renderer = (Renderer(refs.mesh, smooth_normals=refs.config.smooth_normals)
                           if self.cfg.refine.render_iters > 0 else None)
         self._align_renderer = Renderer(refs.mesh, smooth_normals=True) if self.cfg.align.enabled else None
+        self._part_renderers: list[Renderer] | None = None  # per part of the mesh, made on the first part report
         self._shape = None
         if self.cfg.shape.enabled:
             self._shape = shape_cues(refs, self.cfg.shape)
@@ -243,8 +245,41 @@ class PoseEstimator:
             say("alignment")
             hyps = self.align_stage(q, hyps)
             timings["align"] = time.perf_counter() - t
+        res = self.result(hyps, timings, q)
+        self.part_report(q, res)
         timings["total"] = time.perf_counter() - t_all
-        return self.record_inputs(self.result(hyps, timings, q), q)
+        return self.record_inputs(res, q)
+
+    def part_report(self, q: Query, res: PoseResult) -> PoseResult:
+        """Each part's support and verdict at the result's pose (``config.parts``, :mod:`pixie.cues.parts`), into
+        ``res.parts`` / ``res.part_support``; nothing for a mesh without parts, a failed pose or ``parts.enabled``
+        false. Timed as ``timings['parts']``."""
+        pc, mesh = self.cfg.parts, self.refs.mesh
+        if not pc.enabled or mesh.n_parts < 2 or res.T_cam_from_obj is None or res.failed:
+            return res
+        t = time.perf_counter()
+        ren, _, align_kw = self._align_setup(q, photo=False)  # the alignment's photo edges when it ran
+        if self._part_renderers is None:
+            self._part_renderers = part_renderers(mesh)
+        support_kw = dict(fit_px=pc.fit_px, shift_frac=pc.shift_frac, min_points=pc.min_points,
+                          kinds=tuple(PART_KINDS.index(k) for k in pc.kinds))
+        judge_kw = dict(flag_below=pc.flag_below, shift_gain=pc.shift_gain,
+                        found_shifted=pc.found_shifted, min_points=pc.min_points, min_visible=pc.min_visible)
+        if pc.robust:
+            if q.box_source == "prior":  # a grown search region, not the object's sides
+                align_kw["w_box"] = 0.0
+            T, ps, dropped = robust_part_fit(ren, mesh.face_parts, mesh.part_names, q.photo_edges, res.T_cam_from_obj,
+                                             align_kw=align_kw, support_kw=support_kw, judge_kw=judge_kw,
+                                             renderers=self._part_renderers)
+            if dropped:
+                res.T_cam_from_obj = T
+                res.settings["parts_realigned_without"] = [mesh.part_names[k] for k in dropped]
+        else:
+            ps = judge_parts(part_support(ren, mesh.face_parts, mesh.part_names, q.photo_edges, res.T_cam_from_obj,
+                                          renderers=self._part_renderers, **support_kw), **judge_kw)
+        res.part_support, res.parts = ps, [p.as_dict() for p in ps]
+        res.timings["parts"] = time.perf_counter() - t
+        return res
 
     def estimate_from_prior(self, image: np.ndarray, K: np.ndarray, T_init: np.ndarray, bbox=None,
                             mask: np.ndarray | None = None, margin: float | None = None) -> PoseResult:
@@ -296,8 +331,10 @@ class PoseEstimator:
             pb = projected_box_in_image(T, K, self.box_points, image.shape)
             if pb is not None:
                 q.box = pb
-        timings = {"align": time.perf_counter() - t, "total": time.perf_counter() - t_all}
-        return self.record_inputs(self.result([hyp], timings, q), q)
+        timings = {"align": time.perf_counter() - t}
+        res = self.part_report(q, self.result([hyp], timings, q))
+        timings["total"] = time.perf_counter() - t_all
+        return self.record_inputs(res, q)
 
     # ------------------------------------------------------------------------------------------ stages
     def prepare(self, image: np.ndarray, K: np.ndarray, bbox=None, mask: np.ndarray | None = None) -> Query:
@@ -561,13 +598,15 @@ class PoseEstimator:
             timings["region_refine"] = time.perf_counter() - t
         return pool
 
-    def _align_setup(self, q: Query) -> tuple[Renderer, object, dict]:
+    def _align_setup(self, q: Query, photo: bool = True) -> tuple[Renderer, object, dict]:
         """What the edge alignment of query ``q`` needs (``config.align``): the renderer, the photo's edges (also
-        kept as ``q.photo_edges``) and the keywords of :func:`pixie.cues.edge_align.align`."""
+        kept as ``q.photo_edges``; made again unless ``photo`` is false and they exist) and the keywords of
+        :func:`pixie.cues.edge_align.align`."""
         ac = self.cfg.align
         ren = self._align_renderer or Renderer(self.refs.mesh, smooth_normals=True)
-        q.photo_edges = photo_edges(q.image, q.K, q.box, q.mask, object_px=ac.object_px, canny_low=ac.canny_low,
-                                    canny_high=ac.canny_high)
+        if photo or q.photo_edges is None:
+            q.photo_edges = photo_edges(q.image, q.K, q.box, q.mask, object_px=ac.object_px, canny_low=ac.canny_low,
+                                        canny_high=ac.canny_high)
         kw = dict(schedule=tuple(ac.schedule), iters=ac.iters, crease_weight=ac.crease_weight, rot_prior=ac.rot_prior,
                   fit_px=ac.fit_px, search=ac.search, min_contrast=ac.min_contrast, w_box=ac.w_box,
                   hull=self.box_points, w_matches=ac.w_matches, match_px=ac.match_px)

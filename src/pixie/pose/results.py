@@ -119,6 +119,14 @@ class PoseResult:
     candidates: list[Hypothesis] = field(default_factory=list, repr=False)  # every ranked hypothesis (studies; not saved)
     confidence_calibrated: bool = False  # confidence is the calibrated probability (config.align.confidence)
     settings: dict = field(default_factory=dict)  # what ran where the reference set decides (pixie.app.notes)
+    # the part report (meshes with parts, config.parts): one record per part (pixie.cues.parts.PartSupport.as_dict)
+    parts: list[dict] = field(default_factory=list)
+    part_support: list = field(default_factory=list, repr=False)  # the PartSupport objects (points for overlays)
+
+    @property
+    def suspect_parts(self) -> list[str]:
+        """Names of the parts judged missing or displaced (empty without a part report)."""
+        return [p["name"] for p in self.parts if p.get("verdict") in ("missing", "displaced")]
 
     def to_dict(self) -> dict:
         """Everything as JSON-able data (poses as nested lists, mm)."""
@@ -147,11 +155,21 @@ class PoseResult:
             "timings": self.timings,
             "warnings": self.warnings,
             "settings": self.settings,
+            **({"parts": self.parts, "parts_note": PARTS_NOTE, "suspect_parts": self.suspect_parts}
+               if self.parts else {}),
             "hypotheses": [
                 {"T_cam_from_obj": h.T_cam_from_obj.tolist(), "score": h.score, "confidence": h.confidence,
                  "n_inliers": h.n_inliers, "view": h.view, "roll": h.roll, "source": h.source} for h in self.hypotheses
             ],
         }
+
+
+PARTS_NOTE = ("per part of the CAD model at the final pose: support = share of its visible contour pixels "
+              "(silhouette, depth steps, seams) within parts.fit_px of a same-orientation photo edge; relative = "
+              "support / the median part's; shifted_support = the best support with the contour slid up to "
+              "parts.shift_frac of the box (shift_px: by how far, photo px); visible = share of the part in view; "
+              "verdict present / missing / displaced / not visible (thresholds config.parts, calibrated on the "
+              "synthetic defects benchmark; meaningful when the pose is right)")
 
 
 def set_confidences(hyps: list[Hypothesis]) -> None:

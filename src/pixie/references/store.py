@@ -89,6 +89,7 @@ def save_reference_set(refs: ReferenceSet, path: str | Path, force: bool = True)
         "mesh_name": refs.mesh.name,
         "mesh_hash": refs.mesh.source_hash,
         "mesh_file_units": refs.mesh.file_units,  # the units the mesh file was read in (vertices are stored in mm)
+        "mesh_part_names": list(refs.mesh.part_names),  # the part report's parts (empty: the mesh has none)
         "config": refs.config.__dict__,
         "build_seconds": refs.build_seconds,
         "encodings": list(refs.encodings),
@@ -104,6 +105,8 @@ def save_reference_set(refs: ReferenceSet, path: str | Path, force: bool = True)
         # the aligning renderer's smooth normals, float32 as the renderer uses them (~0.2 s per load otherwise)
         "mesh_corner_normals": refs.mesh.corner_normals().astype(np.float32),
     }
+    if refs.mesh.face_parts is not None:
+        arrays["mesh_face_parts"] = refs.mesh.face_parts.astype(np.int16)
     if refs.config.store_rotated_encodings:  # roll-0 encodings are re-derived from D and N on load
         for name, img in refs.encodings.items():
             arrays[f"enc/{name}"] = img
@@ -163,6 +166,8 @@ def load_reference_set(path: str | Path, mesh: Mesh | str | Path | None = None) 
             stored_mesh._hull_vertices = data["mesh_hull"]
         if "mesh_corner_normals" in data:  # likewise (float32: what the renderer reads)
             stored_mesh._corner_normals = data["mesh_corner_normals"]
+        if "mesh_face_parts" in data:  # sets of meshes with parts (older sets have none)
+            stored_mesh.with_parts(data["mesh_face_parts"], meta.get("mesh_part_names", ()))
         cfg = RefsConfig(**meta["config"])
         _check_shapes(path, data, cfg)
         feats: dict[str, dict[str, np.ndarray]] = {}

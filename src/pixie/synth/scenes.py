@@ -6,6 +6,7 @@
       models/obj_OOOOOO.ply, models/models_info.json     target models (ids 1..A), mm, centred
       models_defective/obj_OOOOOO.ply (+ models_info.json) defective variants (ids 100*a + k)
       models_defective/defective_models.json             defective id -> {target_obj_id, defect, ...}
+      models_parts/obj_OOOOOO.glb                        target models with one sub-mesh per part
       camera.json                                        640x480, fx ~ fy ~ 600, depth_scale 0.1
       test/SSSSSS/{rgb,depth,mask,mask_visib}/ ...        rgb PNG, depth uint16 (x 0.1 mm)
       test/SSSSSS/scene_gt.json, scene_camera.json, scene_gt_info.json
@@ -69,6 +70,7 @@ __all__ = [
     "table1",
     "format_table1",
     "write_ply",
+    "write_parts_glb",
     "load_variants",
 ]
 
@@ -94,6 +96,27 @@ def write_ply(path: Path, mesh: Mesh) -> None:
         fh.write(header.encode("ascii"))
         fh.write(v.astype("<f4").tobytes())
         fh.write(faces.tobytes())
+
+
+def write_parts_glb(path: Path, asm: Assembly) -> None:
+    """The assembly's union mesh as a GLB with one named sub-mesh per part (``part_KK_<name>``, in mm).
+
+    The sub-meshes are the union's own triangles grouped by the part they came from, so
+    :func:`pixie.geometry.mesh.load_mesh` reads back the same solid with its parts
+    (``Mesh.face_parts``): the CAD-with-parts input of the part report.
+    """
+    import trimesh
+
+    mesh, part_of = asm.to_mesh_with_part_ids()
+    scene = trimesh.Scene()
+    for k, part in enumerate(asm.parts):
+        sel = part_of == k
+        if not sel.any():  # a part entirely inside others leaves no surface
+            continue
+        name = f"part_{k:02d}_{part.name}"
+        scene.add_geometry(trimesh.Trimesh(mesh.vertices, mesh.faces[sel], process=False),
+                           node_name=name, geom_name=name)
+    scene.export(str(path), file_type="glb")
 
 
 def _model_info(mesh: Mesh) -> dict:
@@ -385,6 +408,7 @@ def generate_defect_dataset(
         shutil.rmtree(out)
     (out / "models").mkdir(parents=True, exist_ok=True)
     (out / "models_defective").mkdir(parents=True, exist_ok=True)
+    (out / "models_parts").mkdir(parents=True, exist_ok=True)
     K = default_K() if (width, height) == (WIDTH, HEIGHT) else make_K(600.0 * width / WIDTH, 600.0 * width / WIDTH,
                                                                      (width - 1) / 2, (height - 1) / 2)
     targets, defects, variants = build_variants(n_assemblies, n_defects, n_colour_variants, seed, full_product,
@@ -399,6 +423,7 @@ def generate_defect_dataset(
         m = tgt.to_mesh()
         target_meshes[a + 1] = m
         write_ply(out / "models" / f"obj_{a + 1:06d}.ply", m)
+        write_parts_glb(out / "models_parts" / f"obj_{a + 1:06d}.glb", tgt)
         info_t[str(a + 1)] = _model_info(m)
         for k, d in enumerate(defects[a], start=1):
             did = 100 * (a + 1) + k

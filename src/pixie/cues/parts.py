@@ -1,0 +1,269 @@
+"""Part support: does every part of the CAD model agree with the photo at the estimated pose?
+
+For a mesh with parts (:attr:`pixie.geometry.mesh.Mesh.face_parts`: a GLB's sub-meshes, OBJ objects or connected
+components), the model is rendered at the pose in the alignment crop's camera (:class:`PhotoEdges`). Each part's
+visible contour pixels are its silhouette, its creases, the depth steps where it is in front, and its seams with
+other parts. A pixel counts as *supported* when a photo edge of the same orientation (±1 bin) lies within
+``fit_px`` crop px: the aligned fit of :mod:`pixie.cues.edge_align`, per part.
+
+Per part (:class:`PartSupport`):
+
+- ``support``: the share of its visible contour pixels that are supported;
+- ``relative``: support / the median support of the assembly's visible parts (the photo's edge quality and the
+  pose's overall precision cancel out);
+- ``shifted`` / ``shift_px``: the best support when the part's contour is slid in the image by up to
+  ``shift_frac`` of the box (a displaced part's edges are nearby, a missing part's are nowhere);
+- ``visible``: its visible pixels / its pixels when rendered alone (hidden by other parts or outside the box / mask).
+
+:func:`judge_parts` turns these into verdicts: ``not visible`` (too little of it to judge), ``missing``
+(its contour is unsupported and no shift finds it), ``displaced`` (unsupported where it should be, fully
+supported nearby), ``present``. Thresholds are ``config.parts`` (calibrated on the defects benchmark,
+``bench/defects_parts.py``).
+
+>>> parts = part_support(renderer, mesh.face_parts, mesh.part_names, pe, T)
+>>> parts = judge_parts(parts, flag_below=0.6)
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass, field, replace
+
+import cv2
+import numpy as np
+
+from pixie.cues.edge_align import align, edge_distances
+from pixie.cues.edge_photo import PhotoEdges
+from pixie.geometry.mesh import Mesh, from_arrays
+from pixie.geometry.render import RenderResult, Renderer
+from pixie.references.templates import edge_map
+
+__all__ = ["VERDICTS", "PartSupport", "part_contours", "part_renderers", "part_support", "judge_parts",
+           "robust_part_fit"]
+
+VERDICTS = ("present", "missing", "displaced", "not visible")
+
+
+@dataclass(kw_only=True)
+class PartSupport:
+    """One part's agreement with the photo at a pose (see the module docstring); ``verdict`` is set by
+    :func:`judge_parts` ('' before)."""
+
+    index: int
+    name: str
+    support: float
+    relative: float
+    shifted: float
+    shift_px: float
+    visible: float
+    n_points: int
+    verdict: str = ""
+    uv: np.ndarray = field(default_factory=lambda: np.zeros((0, 2)), repr=False)  # its contour points, photo px
+    hit: np.ndarray = field(default_factory=lambda: np.zeros(0, bool), repr=False)  # ... and which are supported
+
+    def as_dict(self) -> dict:
+        """JSON-able record (without the points)."""
+        return {"index": self.index, "name": self.name, "verdict": self.verdict,
+                "support": round(self.support, 4), "relative": round(self.relative, 4),
+                "shifted_support": round(self.shifted, 4), "shift_px": round(self.shift_px, 2),
+                "visible": round(self.visible, 4), "n_points": self.n_points}
+
+
+def part_renderers(mesh: Mesh) -> list[Renderer]:
+    """One renderer per part of ``mesh`` (its own triangles; for the visible fractions)."""
+    if mesh.face_parts is None:
+        return []
+    out = []
+    for k in range(mesh.n_parts):
+        sel = mesh.face_parts == k
+        sub = from_arrays(mesh.vertices, mesh.faces[sel] if sel.any() else mesh.faces[:1], name=f"{mesh.name}:{k}")
+        out.append(Renderer(sub, smooth_normals=False))
+    return out
+
+
+def part_contours(r: RenderResult, face_parts: np.ndarray, crease_deg: float = 35.0, depth_jump: float = 0.01,
+                  step_mm: float = 0.0) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
+    """Contour pixels of every part in one render.
+
+    A depth step (one surface in front of another) counts when the far side is more than ``depth_jump`` of the
+    depth and more than ``step_mm`` farther: a LEGO stud's rim (1.7 mm) is not a step at ``step_mm`` 5, a brick on
+    a brick is.
+
+    Returns
+    -------
+    xy : (N, 2) float pixel centres; ori : (N,) unsigned edge orientation (radians, [0, pi));
+    part : (N,) part index of each pixel; part_map : (H, W) int part index per pixel (-1 background);
+    kind : (N,) 0 silhouette, 1 depth step where the part is in front, 2 seam with another part, 3 crease
+    """
+    part_map = np.where(r.tri_ids >= 0, face_parts[np.maximum(r.tri_ids, 0)], -1).astype(np.int32)
+    obj = part_map >= 0
+    depth = r.depth.astype(np.float32)
+    sil, crease, ori, _ = edge_map(depth, r.normals, crease_deg, depth_jump)
+    # the far side of a depth step is the occluded part: the edge is the near part's
+    big = np.float32(1e9)
+    dmin = cv2.erode(np.where(obj, depth, big), np.ones((3, 3), np.uint8), borderType=cv2.BORDER_CONSTANT,
+                     borderValue=float(big))
+    jump = np.maximum(depth_jump * depth, np.float32(step_mm))
+    far = obj & (depth - dmin > jump)
+    # seams: a 4-neighbour of another part at about the same depth
+    seam = np.zeros_like(obj)
+    H, W = obj.shape
+    for dy, dx in ((0, 1), (1, 0)):
+        a = (slice(0, H - dy), slice(0, W - dx))
+        b = (slice(dy, H), slice(dx, W))
+        s = obj[a] & obj[b] & (part_map[a] != part_map[b])
+        seam[a] |= s
+        seam[b] |= s
+    # kinds: 0 silhouette, 1 depth step (the near side), 2 seam, 3 crease inside the part
+    step = crease & (depth - dmin <= jump) & _near_step(depth, obj, jump)
+    kind_map = np.full(obj.shape, -1, np.int8)
+    kind_map[crease] = 3
+    kind_map[seam] = 2
+    kind_map[step] = 1
+    kind_map[sil] = 0
+    edges = (sil | crease | seam) & ~far & obj
+    # orientation: the part indicator's gradient on the part's outline (silhouette, steps, seams), the render's
+    # own edge orientation on creases inside a part
+    ori_out = ori.astype(np.float64).copy()
+    for k in np.unique(part_map[edges]):
+        ind = cv2.GaussianBlur((part_map == k).astype(np.float32), (0, 0), 1.0)
+        gx = cv2.Sobel(ind, cv2.CV_32F, 1, 0, ksize=3)
+        gy = cv2.Sobel(ind, cv2.CV_32F, 0, 1, ksize=3)
+        on = edges & (part_map == k) & (np.hypot(gx, gy) > 0.1)
+        ori_out[on] = np.mod(np.arctan2(gy[on], gx[on]), np.pi)
+    ys, xs = np.nonzero(edges)
+    return (np.stack([xs, ys], 1).astype(np.float64), ori_out[ys, xs], part_map[ys, xs].astype(np.int64), part_map,
+            kind_map[ys, xs])
+
+
+def _near_step(depth: np.ndarray, obj: np.ndarray, jump: np.ndarray) -> np.ndarray:
+    """Pixels with a neighbour (3 x 3) farther by more than ``jump`` (per pixel, mm), or background."""
+    dmax = cv2.dilate(np.where(obj, depth, np.float32(1e9)), np.ones((3, 3), np.uint8),
+                      borderType=cv2.BORDER_CONSTANT, borderValue=1e9)
+    return obj & (dmax - depth > jump)
+
+
+def _shift_grid(reach: float, step: float) -> np.ndarray:
+    """2D shifts (crop px) with 2 px <= |s| <= reach on a ``step`` grid."""
+    g = np.arange(-reach, reach + 1e-9, step)
+    s = np.stack(np.meshgrid(g, g), -1).reshape(-1, 2)
+    n = np.linalg.norm(s, axis=1)
+    return s[(n >= 2.0) & (n <= reach)]
+
+
+def part_support(renderer: Renderer, face_parts: np.ndarray, part_names, pe: PhotoEdges, T: np.ndarray, *,
+                 fit_px: float = 1.5, max_bin_gap: int = 1, shift_frac: float = 0.12, shift_step: float = 2.0,
+                 renderers: list[Renderer] | None = None, min_points: int = 12, kinds=(0, 1, 2),
+                 max_points: int = 240, step_frac: float = 0.05) -> list[PartSupport]:
+    """Every part's support at pose ``T`` (verdicts not yet set: :func:`judge_parts`).
+
+    Parameters
+    ----------
+    renderer : the whole mesh's renderer; face_parts, part_names : its parts (:class:`Mesh`)
+    pe : the photo's edges (the alignment crop)
+    T : (4, 4) pose, mm
+    fit_px : a contour pixel is supported by a same-orientation edge this close, crop px
+    shift_frac, shift_step : the displaced-part search slides each part's contour up to this share of the box's
+        longer side, on a grid of this step (crop px)
+    renderers : :func:`part_renderers` of the mesh (made here when None)
+    min_points : parts with fewer visible contour pixels get no shift search (and are judged 'not visible')
+    kinds : the contour pixel kinds that count (:func:`part_contours`)
+    max_points : at most this many of a part's pixels (evenly spaced in raster order) enter the shift search
+    step_frac : a depth step counts when it is deeper than this share of the mesh's diameter (:func:`part_contours`)
+    """
+    face_parts = np.asarray(face_parts)
+    n_parts = len(part_names)
+    r = renderer.render(T, pe.K, pe.size, pe.size)
+    xy, ori, part, part_map, kind = part_contours(r, face_parts, step_mm=step_frac * renderer.mesh.diameter)
+    keep = np.isin(kind, np.asarray(kinds))
+    xy, ori, part = xy[keep], ori[keep], part[keep]
+    d, inside = edge_distances(pe, xy, ori, max_bin_gap, fit_px) if len(xy) else (np.zeros(0), np.zeros(0, bool))
+    hit = d <= fit_px
+    renderers = renderers if renderers is not None else part_renderers(
+        replace(renderer.mesh, face_parts=face_parts, part_names=tuple(part_names)))
+    box_side = float(max(pe.box[2] - pe.box[0], pe.box[3] - pe.box[1]))
+    shifts = _shift_grid(max(shift_frac * box_side, 2.0), shift_step)
+    allowed = pe.allowed
+    out = []
+    for k in range(n_parts):
+        own = (part == k) & inside
+        n = int(own.sum())
+        visible_px = int(((part_map == k) & allowed).sum())
+        alone = int(renderers[k].render(T, pe.K, pe.size, pe.size).mask.sum()) if k < len(renderers) else 0
+        visible = float(visible_px / alone) if alone else 0.0
+        support = float(hit[own].mean()) if n else 0.0
+        best, best_shift = support, 0.0
+        if n >= min_points and len(shifts):
+            idx = np.flatnonzero(own)
+            idx = idx[np.linspace(0, len(idx) - 1, min(len(idx), max_points)).astype(int)]
+            q = (xy[idx][None, :, :] + shifts[:, None, :]).reshape(-1, 2)
+            dq, _ = edge_distances(pe, q, np.tile(ori[idx], len(shifts)), max_bin_gap, fit_px)
+            sup = (dq.reshape(len(shifts), len(idx)) <= fit_px).mean(axis=1)
+            j = int(np.argmax(sup))
+            if sup[j] > best:
+                best, best_shift = float(sup[j]), float(np.linalg.norm(shifts[j]) * pe.scale)
+        out.append(PartSupport(index=k, name=str(part_names[k]), support=support, relative=0.0, shifted=best,
+                               shift_px=best_shift, visible=visible, n_points=n,
+                               uv=pe.to_photo(xy[own]) if n else np.zeros((0, 2)), hit=hit[own]))
+    judged = [p.support for p in out if p.n_points >= min_points]
+    med = float(np.median(judged)) if judged else 0.0
+    for p in out:
+        p.relative = float(p.support / med) if med > 0 else 0.0
+    return out
+
+
+def judge_parts(parts: list[PartSupport], *, flag_below: float = 0.6, shift_gain: float = 0.4,
+                found_shifted: float = 0.97, min_points: int = 12, min_visible: float = 0.2) -> list[PartSupport]:
+    """Set each part's verdict (in place; returns ``parts``); supports are relative to the median judged part.
+
+    ``not visible``: fewer than ``min_points`` visible contour pixels or less than ``min_visible`` of it in view.
+    Otherwise: relative support >= ``flag_below``: ``present``; below: ``missing``, unless a shift finds the part
+    (shifted support >= ``found_shifted`` of the median and >= ``shift_gain`` above its own): ``displaced``.
+    On repetitive assemblies (LEGO studs) a shift also finds a neighbour's edges, hence the strict ``found_shifted``.
+    """
+    judged = [p.support for p in parts if p.n_points >= min_points and p.visible >= min_visible]
+    med = float(np.median(judged)) if judged else 0.0
+    for p in parts:
+        if p.n_points < min_points or p.visible < min_visible or med <= 0:
+            p.verdict = "not visible"
+        elif p.relative >= flag_below:
+            p.verdict = "present"
+        elif p.shifted / med >= found_shifted and (p.shifted - p.support) / med >= shift_gain:
+            p.verdict = "displaced"
+        else:
+            p.verdict = "missing"
+    return parts
+
+
+def robust_part_fit(renderer: Renderer, face_parts: np.ndarray, part_names, pe: PhotoEdges, T: np.ndarray, *,
+                    align_kw: dict, support_kw: dict | None = None, judge_kw: dict | None = None,
+                    renderers: list[Renderer] | None = None) -> tuple[np.ndarray, list[PartSupport], list[int]]:
+    """The pose re-aligned without the parts the photo does not support, and the part report at it.
+
+    The parts judged missing or displaced at ``T`` (:func:`part_support`, :func:`judge_parts`) are left out of a
+    second alignment from ``T`` (:func:`pixie.cues.edge_align.align` with ``drop_parts``): a missing or moved part
+    no longer pulls the pose. The new pose is kept when the other parts' median support does not drop; the
+    report is then redone at the kept pose.
+
+    Returns
+    -------
+    (pose, parts, dropped part indices); the pose is ``T`` when nothing was flagged or the re-alignment was not kept.
+    """
+    support_kw, judge_kw = dict(support_kw or {}), dict(judge_kw or {})
+    renderers = renderers if renderers is not None else part_renderers(
+        replace(renderer.mesh, face_parts=np.asarray(face_parts), part_names=tuple(part_names)))
+    ps = judge_parts(part_support(renderer, face_parts, part_names, pe, T, renderers=renderers, **support_kw),
+                     **judge_kw)
+    drop = [p.index for p in ps if p.verdict in ("missing", "displaced")]
+    if not drop or len(drop) >= sum(p.verdict != "not visible" for p in ps):
+        return np.asarray(T, np.float64), ps, []
+    res = align(renderer, pe, T, face_parts=face_parts, drop_parts=drop, **align_kw)
+    ps2 = judge_parts(part_support(renderer, face_parts, part_names, pe, res.T_cam_from_obj, renderers=renderers,
+                                   **support_kw), **judge_kw)
+
+    def kept_median(parts: list[PartSupport]) -> float:
+        vals = [p.support for p in parts if p.index not in drop and p.verdict != "not visible"]
+        return float(np.median(vals)) if vals else 0.0
+
+    if kept_median(ps2) >= kept_median(ps):
+        return res.T_cam_from_obj, ps2, drop
+    return np.asarray(T, np.float64), ps, []

@@ -1,0 +1,221 @@
+"""Meshes with parts (pixie.geometry.mesh) and the part report (pixie.cues.parts) on rendered assemblies."""
+
+from __future__ import annotations
+
+import cv2
+import numpy as np
+import pytest
+
+from pixie.config import PART_KINDS, PixieConfig, RefsConfig
+from pixie.cues.edge_align import align, photo_edges
+from pixie.cues.parts import judge_parts, part_renderers, part_support, robust_part_fit
+from pixie.errors import ConfigError, MeshError
+from pixie.geometry.camera import look_at, make_K, rotation_angle_deg
+from pixie.geometry.mesh import component_parts, from_arrays, load_mesh
+from pixie.geometry.render import Renderer
+from pixie.synth.assemblies import lego_assembly
+from pixie.synth.defects import missing_part
+from pixie.synth.photo import Material, random_background, render_rgb
+from pixie.synth.scenes import write_parts_glb
+
+K = make_K(600.0, 600.0, 319.5, 239.5)
+PC = PixieConfig().parts
+
+
+def _box(lo, hi):
+    import trimesh
+
+    b = trimesh.creation.box(bounds=[lo, hi])
+    return np.asarray(b.vertices, np.float64), np.asarray(b.faces, np.int64)
+
+
+# ------------------------------------------------------------------------------------------ meshes with parts
+
+
+def test_glb_sub_meshes_are_parts_and_survive_a_reference_set_round_trip(tmp_path):
+    import trimesh
+
+    scene = trimesh.Scene()
+    for name, (lo, hi) in {"b_bolt": ([0, 0, 0], [5, 5, 30]), "a_plate": ([-20, -20, -5], [20, 20, 0])}.items():
+        v, f = _box(lo, hi)
+        scene.add_geometry(trimesh.Trimesh(v, f, process=False), node_name=name, geom_name=name)
+    scene.export(str(tmp_path / "asm.glb"))
+    m = load_mesh(tmp_path / "asm.glb")
+    assert m.n_parts == 2 and m.part_names == ("a_plate", "b_bolt")  # node names, in name order
+    assert np.bincount(m.face_parts).tolist() == [12, 12]
+    # the plate's faces are the plate's: all its vertices lie at z <= 0
+    assert m.vertices[m.faces[m.face_parts == 0]][..., 2].max() <= 0.0
+    assert m.vertices[m.faces[m.face_parts == 1]][..., 2].min() >= 0.0
+    from pixie.config import ShapeConfig
+    from pixie.references.set import build_reference_set
+    from pixie.references.store import load_reference_set, save_reference_set
+
+    refs = build_reference_set(m, RefsConfig(n_fibonacci=2, rotations=1, size=32, encodings=["depth"]),
+                               shape=ShapeConfig(enabled=False))
+    back = load_reference_set(save_reference_set(refs, tmp_path / "asm.npz"))
+    assert back.mesh.part_names == m.part_names and np.array_equal(back.mesh.face_parts, m.face_parts)
+
+
+def test_connected_components_are_parts_and_specks_join_the_nearest():
+    v1, f1 = _box([0, 0, 0], [10, 10, 10])
+    v2, f2 = _box([30, 0, 0], [40, 10, 10])
+    v3, f3 = _box([41, 0, 0], [41.5, 0.5, 0.5])  # a speck (< 1 % of the area) next to the second box
+    v = np.concatenate([v1, v2, v3])
+    f = np.concatenate([f1, f2 + len(v1), f3 + len(v1) + len(v2)])
+    fp, names = component_parts(v, f)
+    assert len(names) == 2
+    assert (fp[:12] == fp[0]).all() and (fp[12:] == fp[12]).all() and fp[0] != fp[12]
+    one, none = component_parts(v1, f1)
+    assert one is None and none == ()
+
+
+def test_bad_part_labels_are_refused():
+    v, f = _box([0, 0, 0], [1, 1, 1])
+    m = from_arrays(v * 10, f)
+    with pytest.raises(MeshError, match="one integer per face"):
+        m.with_parts(np.zeros(3, int), ("a", "b"))
+    with pytest.raises(MeshError, match=">= 2 parts"):
+        m.with_parts(np.zeros(len(f), int), ("a",))
+    with pytest.raises(ConfigError, match="unknown 'edges'"):
+        PixieConfig().set("parts.kinds", "silhouette,edges")
+    assert set(PC.kinds) <= set(PART_KINDS)
+
+
+# ------------------------------------------------------------------------------------------ the part report
+
+
+@pytest.fixture(scope="module")
+def lego(tmp_path_factory):
+    """A LEGO-like assembly read back from its GLB (parts = sub-meshes), its renderers, and a copy with a part left
+    out (the physical assembly of a 'missing' defect)."""
+    asm = lego_assembly(3, n_bricks=6).centered()
+    path = tmp_path_factory.mktemp("parts") / "asm.glb"
+    write_parts_glb(path, asm)
+    mesh = load_mesh(path)
+    bad = missing_part(asm, np.random.default_rng(0))
+    return dict(asm=asm, mesh=mesh, ren=Renderer(mesh), parts=part_renderers(mesh), bad=bad,
+                removed=int(bad.defect["part"]))
+
+
+def _photo(asm, T, seed):
+    """A 640 x 480 photo of ``asm`` (every part its own colour) at ``T`` on a cluttered background, 2x supersampled."""
+    rng = np.random.default_rng(seed)
+    mesh, pid = asm.to_mesh_with_part_ids()
+    colours = [np.array(c) for c in ((200, 30, 20), (20, 80, 190), (240, 200, 50), (40, 130, 60), (230, 230, 230),
+                                     (250, 140, 30), (60, 170, 190), (150, 60, 150))]
+    mat = Material.from_part_colors(pid, [colours[k % len(colours)] for k in range(len(asm.parts))])
+    K2 = K.copy()
+    K2[:2, :2] *= 2
+    K2[0, 2], K2[1, 2] = 2 * K[0, 2] + 0.5, 2 * K[1, 2] + 0.5
+    ph = render_rgb([Renderer(mesh, smooth_normals=False)], [T], K2, 960, 1280, [mat], rng,
+                    background=random_background(960, 1280, rng), shadows=False)
+    img = cv2.resize(ph.rgb, (640, 480), interpolation=cv2.INTER_AREA)
+    vis = cv2.resize(ph.masks_visib[0].astype(np.float32), (640, 480), interpolation=cv2.INTER_AREA) > 0.5
+    ys, xs = np.nonzero(vis)
+    return img, np.array([xs.min(), ys.min(), xs.max() + 1, ys.max() + 1], np.float64)
+
+
+def _pose(seed: int, mesh) -> np.ndarray:
+    rng = np.random.default_rng(seed)
+    az, el = rng.uniform(0, 2 * np.pi), np.radians(rng.uniform(35, 60))
+    d = 3.2 * mesh.bounding_radius * 600 / 260  # the assembly ~ 260 px across
+    eye = d * np.array([np.cos(el) * np.cos(az), np.cos(el) * np.sin(az), np.sin(el)])
+    return look_at(eye + mesh.center, mesh.center, np.array([0.0, 0.0, 1.0]))
+
+
+def _turned(T, centre, deg, dz, seed):
+    rng = np.random.default_rng(seed)
+    axis = rng.normal(size=3)
+    R = cv2.Rodrigues(axis / np.linalg.norm(axis) * np.radians(deg))[0]
+    c = T[:3, :3] @ centre + T[:3, 3]
+    out = T.copy()
+    out[:3, :3] = R @ T[:3, :3]
+    out[:3, 3] = c * (1 + dz) - out[:3, :3] @ centre
+    return out
+
+
+SUPPORT = dict(kinds=tuple(PART_KINDS.index(k) for k in PC.kinds), fit_px=PC.fit_px, shift_frac=PC.shift_frac,
+               min_points=PC.min_points)
+JUDGE = dict(flag_below=PC.flag_below, shift_gain=PC.shift_gain,
+             found_shifted=PC.found_shifted, min_points=PC.min_points, min_visible=PC.min_visible)
+_AC = PixieConfig().align
+ALIGN = dict(schedule=tuple(_AC.schedule), iters=_AC.iters, crease_weight=_AC.crease_weight, search=_AC.search,
+             w_box=_AC.w_box)
+
+
+def _report(lego, pe, T):
+    ps = part_support(lego["ren"], lego["mesh"].face_parts, lego["mesh"].part_names, pe, T, renderers=lego["parts"],
+                      **SUPPORT)
+    return judge_parts(ps, **JUDGE)
+
+
+def test_a_removed_part_is_reported_missing_after_alignment_and_the_complete_assembly_has_none(lego):
+    """The pipeline's last two steps on a rendered LEGO-like assembly, 12 viewpoints: the edge alignment from
+    4° / 2 % off, then the part report with the re-alignment that leaves flagged parts out (:func:`robust_part_fit`).
+    Measured: 11 / 12 within 2° and 2 % depth with the brick removed (one alignment ends 5.9° off), the removed
+    brick reported missing in 12 / 12, no part flagged on the complete assembly in 12 / 12."""
+    mesh = lego["mesh"]
+    n_pose = n_missing = n_clean = 0
+    for seed in range(12):
+        T = _pose(seed, mesh)
+        for asm, removed in ((lego["bad"], lego["removed"]), (lego["asm"], None)):
+            img, box = _photo(asm, T, seed)
+            pe = photo_edges(img, K, box)
+            start = _turned(T, mesh.center, 4.0, 0.02, seed)
+            T1 = align(lego["ren"], pe, start, hull=mesh.hull_vertices, **ALIGN).T_cam_from_obj
+            Te, parts, _ = robust_part_fit(lego["ren"], mesh.face_parts, mesh.part_names, pe, T1,
+                                           align_kw=dict(hull=mesh.hull_vertices, **ALIGN), support_kw=SUPPORT,
+                                           judge_kw=JUDGE, renderers=lego["parts"])
+            flagged = [p.index for p in parts if p.verdict in ("missing", "displaced")]
+            if removed is None:
+                n_clean += flagged == []
+            else:
+                n_pose += rotation_angle_deg(Te[:3, :3], T[:3, :3]) < 2.0 and abs(Te[2, 3] / T[2, 3] - 1) < 0.02
+                n_missing += parts[removed].verdict == "missing" and flagged == [removed]
+    assert n_pose >= 10 and n_missing >= 10 and n_clean >= 10, (n_pose, n_missing, n_clean)
+
+
+# ------------------------------------------------------------------------------------------ pixie inspect
+
+
+def test_inspect_reports_the_removed_part_in_the_json_and_refuses_a_one_piece_mesh(lego, tmp_path, capsys):
+    import json
+
+    from pixie.app.cli import main
+    from pixie.geometry.camera import project
+    from pixie.references.set import build_reference_set
+    from pixie.references.store import save_reference_set
+    from pixie.config import ShapeConfig
+
+    mesh = lego["mesh"]
+    T = _pose(1, mesh)
+    img, box = _photo(lego["bad"], T, 1)
+    cv2.imwrite(str(tmp_path / "photo.png"), img[..., ::-1])
+    start = _turned(T, mesh.center, 3.0, 0.01, 1)
+    (tmp_path / "init.json").write_text(json.dumps({"R": start[:3, :3].tolist(), "t": start[:3, 3].tolist()}))
+    refs = build_reference_set(mesh, RefsConfig(n_fibonacci=2, rotations=1, size=32, encodings=["shade3_edges"]),
+                               shape=ShapeConfig(enabled=False))
+    save_reference_set(refs, tmp_path / "asm.npz")
+    x0, y0, x1, y1 = box
+    args = ["--refs", str(tmp_path / "asm.npz"), "--image", str(tmp_path / "photo.png"),
+            "--K", f"{K[0, 0]},{K[1, 1]},{K[0, 2]},{K[1, 2]}", "--bbox", f"{x0:.0f},{y0:.0f},{x1 - x0:.0f},{y1 - y0:.0f}",
+            "--init-pose", str(tmp_path / "init.json"), "--set", "match.matcher=sift-nn", "--set", "shape.enabled=false"]
+    rc = main(["inspect", *args, "-o", str(tmp_path / "r.json"), "--overlay", str(tmp_path / "r.png")])
+    out = capsys.readouterr().out
+    assert rc == 0
+    rec = json.loads((tmp_path / "r.json").read_text())
+    name = mesh.part_names[lego["removed"]]
+    assert rec["suspect_parts"] == [name] and "parts_note" in rec
+    assert {p["name"]: p["verdict"] for p in rec["parts"]}[name] == "missing"
+    assert f"parts: 1 suspect ({name})" in out
+    uv = project(K, (mesh.center @ np.asarray(rec["T_cam_from_obj"])[:3, :3].T + np.asarray(rec["T_cam_from_obj"])[:3, 3])[None])
+    assert np.all(np.abs(uv - project(K, (T[:3, :3] @ mesh.center + T[:3, 3])[None])) < 3)
+    assert cv2.imread(str(tmp_path / "r.png")) is not None
+    # a one-piece mesh: exit 2, saying what file to give
+    one = from_arrays(mesh.vertices, mesh.faces, name="union")
+    save_reference_set(build_reference_set(one, RefsConfig(n_fibonacci=2, rotations=1, size=32,
+                                                           encodings=["shade3_edges"]), shape=ShapeConfig(enabled=False)),
+                       tmp_path / "one.npz")
+    rc = main(["inspect", *args[:1], str(tmp_path / "one.npz"), *args[2:]])
+    err = capsys.readouterr().err
+    assert rc == 2 and "inspect needs a mesh with parts" in err and "GLB" in err and "Traceback" not in err
