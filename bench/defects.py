@@ -166,7 +166,7 @@ def run_key(cfg: PixieConfig, model_path: Path, root: Path, tg: Target, det_thre
 
 def estimate_all(name: str, ds: BopDataset, variants: dict[int, dict], cfg: PixieConfig, model_kind: str,
                  models: Models, cache: Journal, echo=print, reuse: dict | None = None,
-                 skip_target_scenes: bool = False) -> list[dict]:
+                 skip_target_scenes: bool = False, first_images: int | None = None) -> list[dict]:
     """One estimate per target. ``model_kind``: 'target' or 'defective' (the physical model). ``cache`` is the
     resumable journal of estimates (keyed by :func:`run_key`)."""
     rows = []
@@ -174,6 +174,8 @@ def estimate_all(name: str, ds: BopDataset, variants: dict[int, dict], cfg: Pixi
     targets = ds.targets()
     if skip_target_scenes:
         targets = [t for t in targets if variants[t.scene_id]["defect_index"] > 0]
+    if first_images is not None:
+        targets = [t for t in targets if t.im_id < first_images]
     t_run = time.perf_counter()
     for i, tg in enumerate(targets):
         v = variants[tg.scene_id]
@@ -246,8 +248,9 @@ def ar_physical(rows: list[dict], ds: BopDataset, variants: dict[int, dict], mod
             for r in rows if r["T"] is not None and not r["failed"]]
     out = {}
     all_t = ds.targets()
+    done = {(r["scene_id"], r["im_id"]) for r in rows}
     for sid, v in variants.items():
-        tgs = [t for t in all_t if t.scene_id == sid]
+        tgs = [t for t in all_t if t.scene_id == sid and (t.scene_id, t.im_id) in done]  # the targets of this run
         if not tgs:
             continue
         od = object_data(v["obj_id"], models.mesh(physical_model_path(ds.root, v)))
@@ -381,6 +384,8 @@ def main(argv=None) -> int:
     ap.add_argument("--set", action="append", default=[], metavar="SECTION.KEY=VALUE")
     ap.add_argument("--paper-refs", action="store_true", help="do not apply the cheap defaults " + " ".join(CHEAP_REFS))
     ap.add_argument("--no-ablations", action="store_true")
+    ap.add_argument("--first-images", type=int, default=None, metavar="N",
+                    help="estimate only the first N images of every scene (a subset, e.g. for the slow paper preset)")
     ap.add_argument("--rows", default="target,defective", help="which model rows to run (a 'defective' run alone "
                     "skips the target scenes, whose estimates the target row makes: merge the journals, then re-run "
                     "both rows from the cache)")
@@ -437,7 +442,8 @@ def main(argv=None) -> int:
             est_cfg = PixieConfig.from_dict(cfg.to_dict())
             est_cfg.refs.encodings = ABLATIONS[label[len("PIXIE - "):]]
         rows = _run_with_full_refs(name, ds, variants, cfg, est_cfg, kind, models, cache, reuse,
-                                   skip_target_scenes=kind == "defective" and "target" not in rows_wanted)
+                                   skip_target_scenes=kind == "defective" and "target" not in rows_wanted,
+                                   first_images=args.first_images)
         if label == "PIXIE" and kind == "target":
             reuse = {(r["scene_id"], r["im_id"]): r for r in rows}
         score_rows(rows, ds, models, variants)
@@ -446,7 +452,9 @@ def main(argv=None) -> int:
         if kind == "target":
             ests = [PoseEstimate(r["scene_id"], r["im_id"], r["obj_id"], r["score"], np.asarray(r["T"]), r["time"])
                     for r in rows if r["T"] is not None and not r["failed"]]
-            ar_bop = evaluate(ds, ests, metrics=("mssd", "mspd", "vsd")).overall.get("AR")
+            done = {(r["scene_id"], r["im_id"]) for r in rows}
+            ar_bop = evaluate(ds, ests, metrics=("mssd", "mspd", "vsd"),
+                              targets=[t for t in ds.targets() if (t.scene_id, t.im_id) in done]).overall.get("AR")
         safe = name.replace(" ", "_").replace("[", "").replace("]", "").replace("/", "-")
         write_results_csv(args.out / f"results_{safe}.csv",
                           [PoseEstimate(r["scene_id"], r["im_id"], r["obj_id"], r["score"], np.asarray(r["T"]), r["time"])
@@ -521,7 +529,8 @@ than 150° (the near-symmetric base plates invite 180° flips); failed = no pose
     return 0
 
 
-def _run_with_full_refs(name, ds, variants, ref_cfg, est_cfg, kind, models, cache, reuse, skip_target_scenes=False):
+def _run_with_full_refs(name, ds, variants, ref_cfg, est_cfg, kind, models, cache, reuse, skip_target_scenes=False,
+                        first_images=None):
     """Estimates with references built from ``ref_cfg`` (all encodings) and an estimator on ``est_cfg``."""
     orig = models.refs
 
@@ -531,7 +540,7 @@ def _run_with_full_refs(name, ds, variants, ref_cfg, est_cfg, kind, models, cach
     models.refs = refs_full
     try:
         return estimate_all(name, ds, variants, est_cfg, kind, models, cache, reuse=reuse,
-                            skip_target_scenes=skip_target_scenes)
+                            skip_target_scenes=skip_target_scenes, first_images=first_images)
     finally:
         models.refs = orig
 

@@ -135,8 +135,8 @@ def _turned(T, centre, deg, dz, seed):
 
 
 SUPPORT = dict(kinds=tuple(PART_KINDS.index(k) for k in PC.kinds), fit_px=PC.fit_px, shift_frac=PC.shift_frac,
-               min_points=PC.min_points)
-JUDGE = dict(flag_below=PC.flag_below, shift_gain=PC.shift_gain,
+               min_points=PC.min_points, colour_ab=PC.colour_ab, step_frac=PC.step_frac)
+JUDGE = dict(flag_below=PC.flag_below, colour_below=PC.colour_below, shift_gain=PC.shift_gain,
              found_shifted=PC.found_shifted, min_points=PC.min_points, min_visible=PC.min_visible)
 _AC = PixieConfig().align
 ALIGN = dict(schedule=tuple(_AC.schedule), iters=_AC.iters, crease_weight=_AC.crease_weight, search=_AC.search,

@@ -13,7 +13,10 @@ Per part (:class:`PartSupport`):
   pose's overall precision cancel out);
 - ``shifted`` / ``shift_px``: the best support when the part's contour is slid in the image by up to
   ``shift_frac`` of the box (a displaced part's edges are nearby, a missing part's are nowhere);
-- ``visible``: its visible pixels / its pixels when rendered alone (hidden by other parts or outside the box / mask).
+- ``visible``: its visible pixels / its pixels when rendered alone (hidden by other parts or outside the box / mask);
+- ``colour``: the share of its visible inner pixels whose chroma (CIELAB a*, b*) lies within ``colour_ab`` of their
+  median: one paint gives ~1 whatever the shading, a region that shows a moved part and what it uncovered gives less
+  (for uniformly painted parts; ``colour_below`` 0 turns the cue off).
 
 :func:`judge_parts` turns these into verdicts: ``not visible`` (too little of it to judge), ``missing``
 (its contour is unsupported and no shift finds it), ``displaced`` (unsupported where it should be, fully
@@ -56,6 +59,7 @@ class PartSupport:
     shift_px: float
     visible: float
     n_points: int
+    colour: float = 1.0
     verdict: str = ""
     uv: np.ndarray = field(default_factory=lambda: np.zeros((0, 2)), repr=False)  # its contour points, photo px
     hit: np.ndarray = field(default_factory=lambda: np.zeros(0, bool), repr=False)  # ... and which are supported
@@ -65,7 +69,7 @@ class PartSupport:
         return {"index": self.index, "name": self.name, "verdict": self.verdict,
                 "support": round(self.support, 4), "relative": round(self.relative, 4),
                 "shifted_support": round(self.shifted, 4), "shift_px": round(self.shift_px, 2),
-                "visible": round(self.visible, 4), "n_points": self.n_points}
+                "visible": round(self.visible, 4), "n_points": self.n_points, "colour": round(self.colour, 4)}
 
 
 def part_renderers(mesh: Mesh) -> list[Renderer]:
@@ -153,7 +157,7 @@ def _shift_grid(reach: float, step: float) -> np.ndarray:
 def part_support(renderer: Renderer, face_parts: np.ndarray, part_names, pe: PhotoEdges, T: np.ndarray, *,
                  fit_px: float = 1.5, max_bin_gap: int = 1, shift_frac: float = 0.12, shift_step: float = 2.0,
                  renderers: list[Renderer] | None = None, min_points: int = 12, kinds=(0, 1, 2),
-                 max_points: int = 240, step_frac: float = 0.05) -> list[PartSupport]:
+                 max_points: int = 240, step_frac: float = 0.0, colour_ab: float = 12.0) -> list[PartSupport]:
     """Every part's support at pose ``T`` (verdicts not yet set: :func:`judge_parts`).
 
     Parameters
@@ -169,6 +173,7 @@ def part_support(renderer: Renderer, face_parts: np.ndarray, part_names, pe: Pho
     kinds : the contour pixel kinds that count (:func:`part_contours`)
     max_points : at most this many of a part's pixels (evenly spaced in raster order) enter the shift search
     step_frac : a depth step counts when it is deeper than this share of the mesh's diameter (:func:`part_contours`)
+    colour_ab : chroma distance (CIELAB a*, b* units) within which a pixel has the part's paint
     """
     face_parts = np.asarray(face_parts)
     n_parts = len(part_names)
@@ -180,6 +185,7 @@ def part_support(renderer: Renderer, face_parts: np.ndarray, part_names, pe: Pho
     hit = d <= fit_px
     renderers = renderers if renderers is not None else part_renderers(
         replace(renderer.mesh, face_parts=face_parts, part_names=tuple(part_names)))
+    lab = cv2.cvtColor(np.ascontiguousarray(pe.crop.image), cv2.COLOR_RGB2LAB).astype(np.float32)
     box_side = float(max(pe.box[2] - pe.box[0], pe.box[3] - pe.box[1]))
     shifts = _shift_grid(max(shift_frac * box_side, 2.0), shift_step)
     allowed = pe.allowed
@@ -201,8 +207,13 @@ def part_support(renderer: Renderer, face_parts: np.ndarray, part_names, pe: Pho
             j = int(np.argmax(sup))
             if sup[j] > best:
                 best, best_shift = float(sup[j]), float(np.linalg.norm(shifts[j]) * pe.scale)
+        inner = (cv2.erode((part_map == k).astype(np.uint8), np.ones((3, 3), np.uint8)) > 0) & allowed
+        colour = 1.0
+        if inner.sum() >= 20:
+            ab = lab[inner][:, 1:]
+            colour = float(np.mean(np.linalg.norm(ab - np.median(ab, axis=0), axis=1) < colour_ab))
         out.append(PartSupport(index=k, name=str(part_names[k]), support=support, relative=0.0, shifted=best,
-                               shift_px=best_shift, visible=visible, n_points=n,
+                               shift_px=best_shift, visible=visible, n_points=n, colour=colour,
                                uv=pe.to_photo(xy[own]) if n else np.zeros((0, 2)), hit=hit[own]))
     judged = [p.support for p in out if p.n_points >= min_points]
     med = float(np.median(judged)) if judged else 0.0
@@ -211,21 +222,23 @@ def part_support(renderer: Renderer, face_parts: np.ndarray, part_names, pe: Pho
     return out
 
 
-def judge_parts(parts: list[PartSupport], *, flag_below: float = 0.6, shift_gain: float = 0.4,
-                found_shifted: float = 0.97, min_points: int = 12, min_visible: float = 0.2) -> list[PartSupport]:
+def judge_parts(parts: list[PartSupport], *, flag_below: float = 0.6, colour_below: float = 0.0,
+                shift_gain: float = 0.4, found_shifted: float = 0.97, min_points: int = 12,
+                min_visible: float = 0.2) -> list[PartSupport]:
     """Set each part's verdict (in place; returns ``parts``); supports are relative to the median judged part.
 
     ``not visible``: fewer than ``min_points`` visible contour pixels or less than ``min_visible`` of it in view.
-    Otherwise: relative support >= ``flag_below``: ``present``; below: ``missing``, unless a shift finds the part
-    (shifted support >= ``found_shifted`` of the median and >= ``shift_gain`` above its own): ``displaced``.
-    On repetitive assemblies (LEGO studs) a shift also finds a neighbour's edges, hence the strict ``found_shifted``.
+    Otherwise a part is flagged when its relative support is below ``flag_below`` or its colour consistency below
+    ``colour_below``: ``displaced`` when a shift finds it (shifted support >= ``found_shifted`` of the median and
+    >= ``shift_gain`` above its own), else ``missing``. The others are ``present``. On repetitive assemblies (LEGO
+    studs) a shift also finds a neighbour's edges, hence the strict ``found_shifted``.
     """
     judged = [p.support for p in parts if p.n_points >= min_points and p.visible >= min_visible]
     med = float(np.median(judged)) if judged else 0.0
     for p in parts:
         if p.n_points < min_points or p.visible < min_visible or med <= 0:
             p.verdict = "not visible"
-        elif p.relative >= flag_below:
+        elif p.relative >= flag_below and p.colour >= colour_below:
             p.verdict = "present"
         elif p.shifted / med >= found_shifted and (p.shifted - p.support) / med >= shift_gain:
             p.verdict = "displaced"
