@@ -8,7 +8,9 @@ model's parts (``models_parts/obj_*.glb``):
   ``pixie inspect`` does) -- also reporting the ADD of that re-aligned pose;
 * at the ground-truth pose (the report's own quality, free of pose errors).
 
-Thresholds (``config.parts.flag_below``, ``colour_below``): chosen on the *fitting half* (even image ids, i.e.
+With ``--mask`` the report runs inside the GT visible mask (the estimates stay those made from the box).
+
+Thresholds (``config.parts.flag_below``, ``colour_weight``): chosen on the *fitting half* (even image ids, i.e.
 viewpoints 0 and 2 of every scene) on a grid, as the pair with the best mean recall of the defective part over the
 missing / shifted / rotated / wrong scenes among those with <= 0.1 false alarms per correct assembly, at the
 estimated poses; reported on the other half (odd image ids). The verdicts in the per-image records use the
@@ -45,19 +47,19 @@ from pixie.eval.datasets import BopDataset  # noqa: E402
 from pixie.geometry.mesh import load_mesh  # noqa: E402
 from pixie.geometry.render import Renderer  # noqa: E402
 
-GRID = [round(x, 2) for x in np.arange(0.3, 0.951, 0.05)]
-COLOUR_GRID = [0.0, 0.3, 0.4, 0.5, 0.6, 0.7]
+GRID = [round(x, 2) for x in np.arange(-0.5, 0.951, 0.05)]  # flag_below (a score below 0: colour_weight > 0)
+COLOUR_GRID = [0.0, 0.5, 1.0, 1.5, 2.0, 3.0]
 PART_DEFECTS = ("missing", "shifted", "rotated", "wrong")
 
 
 def _kw(cfg: PixieConfig, flag_below: float | None = None,
-        colour_below: float | None = None) -> tuple[dict, dict, dict]:
+        colour_weight: float | None = None) -> tuple[dict, dict, dict]:
     pc, ac = cfg.parts, cfg.align
     support = dict(fit_px=pc.fit_px, shift_frac=pc.shift_frac, min_points=pc.min_points,
                    colour_ab=pc.colour_ab, step_frac=pc.step_frac,
                    kinds=tuple(PART_KINDS.index(k) for k in pc.kinds))
     judge = dict(flag_below=pc.flag_below if flag_below is None else flag_below,
-                 colour_below=pc.colour_below if colour_below is None else colour_below, shift_gain=pc.shift_gain,
+                 colour_weight=pc.colour_weight if colour_weight is None else colour_weight, shift_gain=pc.shift_gain,
                  found_shifted=pc.found_shifted, min_points=pc.min_points, min_visible=pc.min_visible)
     align = dict(schedule=tuple(ac.schedule), iters=ac.iters, crease_weight=ac.crease_weight, search=ac.search,
                  min_contrast=ac.min_contrast, w_box=ac.w_box, fit_px=ac.fit_px)
@@ -86,7 +88,7 @@ def target_estimates(journal: Path, data: Path, cfg: PixieConfig) -> dict[tuple[
     return out
 
 
-def analyse(data: Path, ests: dict, cfg: PixieConfig, echo=print) -> list[dict]:
+def analyse(data: Path, ests: dict, cfg: PixieConfig, echo=print, use_mask: bool = False) -> list[dict]:
     ds = BopDataset(data)
     variants = {v["scene_id"]: v for v in json.loads((data / "variants.json").read_text())}
     support_kw, judge_kw, align_kw = _kw(cfg)
@@ -108,7 +110,8 @@ def analyse(data: Path, ests: dict, cfg: PixieConfig, echo=print) -> list[dict]:
         img, K = ds.load_rgb(sid, im), ds.camera(sid, im).K
         x, y, w, h = inst.box_visib
         ac = cfg.align
-        pe = photo_edges(img, K, np.array([x, y, x + w, y + h], np.float64), object_px=ac.object_px,
+        mask = ds.load_mask_visib(sid, im, 0) if use_mask else None
+        pe = photo_edges(img, K, np.array([x, y, x + w, y + h], np.float64), mask=mask, object_px=ac.object_px,
                          canny_low=ac.canny_low, canny_high=ac.canny_high)
         defect = v.get("defect") or {}
         rec = dict(scene_id=sid, im_id=im, obj_id=oid, defect=defect.get("type"), defect_part=defect.get("part"),
@@ -134,16 +137,16 @@ def analyse(data: Path, ests: dict, cfg: PixieConfig, echo=print) -> list[dict]:
     return rows
 
 
-def rejudge(parts: list[dict], cfg: PixieConfig, flag_below: float, colour_below: float) -> list[str]:
+def rejudge(parts: list[dict], cfg: PixieConfig, flag_below: float, colour_weight: float) -> list[str]:
     """Verdicts of stored part records under other thresholds (:func:`judge_parts` on the records)."""
-    _, judge, _ = _kw(cfg, flag_below, colour_below)
+    _, judge, _ = _kw(cfg, flag_below, colour_weight)
     ps = [PartSupport(index=p["index"], name=p["name"], support=p["support"], relative=p["relative"],
                       shifted=p["shifted_support"], shift_px=p["shift_px"], visible=p["visible"],
                       n_points=p["n_points"], colour=p.get("colour", 1.0)) for p in parts]
     return [p.verdict for p in judge_parts(ps, **judge)]
 
 
-def table(rows: list[dict], cfg: PixieConfig, flag_below: float, colour_below: float, key: str = "parts") -> dict:
+def table(rows: list[dict], cfg: PixieConfig, flag_below: float, colour_weight: float, key: str = "parts") -> dict:
     """Per defect type: recall of the defective part (flagged missing or displaced), the share flagged with the
     right kind (missing for 'missing', displaced for shifted / rotated), and on correct assemblies the false alarms
     (flagged parts) per image. 'extra' has no defective part of the CAD model: the share of its images with any
@@ -156,7 +159,7 @@ def table(rows: list[dict], cfg: PixieConfig, flag_below: float, colour_below: f
             continue
         by.setdefault(r["defect"] or "none (correct assembly)", []).append(r)
     for d, rs in sorted(by.items()):
-        vs = [rejudge(r[key], cfg, flag_below, colour_below) for r in rs]
+        vs = [rejudge(r[key], cfg, flag_below, colour_weight) for r in rs]
         if d == "none (correct assembly)":
             fa = [sum(x in FLAG for x in v) for v in vs]
             out[d] = dict(n=len(rs), false_alarms_per_image=float(np.mean(fa)),
@@ -178,7 +181,7 @@ def table(rows: list[dict], cfg: PixieConfig, flag_below: float, colour_below: f
 
 
 def choose(rows: list[dict], cfg: PixieConfig) -> tuple[float, float]:
-    """(flag_below, colour_below) with the best mean recall over the part defects among the pairs with <= 0.1 false
+    """(flag_below, colour_weight) with the best mean recall over the part defects among the pairs with <= 0.1 false
     alarms per correct assembly at the estimated poses (the fitting half); ties to the fewer alarms."""
     best, key = (GRID[0], 0.0), (-1.0, 0.0)
     for fb in GRID:
@@ -194,7 +197,7 @@ def choose(rows: list[dict], cfg: PixieConfig) -> tuple[float, float]:
 
 
 def choose_edges_only(rows: list[dict], cfg: PixieConfig) -> float:
-    """The same rule without the colour cue (colour_below 0): the ablation row."""
+    """The same rule without the colour cue (colour_weight 0): the ablation row."""
     best, key = GRID[0], (-1.0, 0.0)
     for fb in GRID:
         t = table(rows, cfg, fb, 0.0)
@@ -225,6 +228,8 @@ def main(argv=None) -> int:
     ap.add_argument("--set", action="append", default=[], metavar="SECTION.KEY=VALUE")
     ap.add_argument("--out", type=Path, required=True)
     ap.add_argument("--reuse", action="store_true", help="re-score the rows of an existing --out (no computation)")
+    ap.add_argument("--mask", action="store_true", help="the part report inside the GT visible mask (as with "
+                    "`pixie inspect --mask`): occluders in front of the assembly are then known")
     args = ap.parse_args(argv)
     cfg = PixieConfig.from_preset(args.preset).apply_overrides(args.set)
     if args.reuse and args.out.is_file():
@@ -234,24 +239,24 @@ def main(argv=None) -> int:
         for j in args.estimates:
             ests.update(target_estimates(j, args.data, cfg))
         print(f"{len(ests)} target-model estimates")
-        rows = analyse(args.data, ests, cfg)
+        rows = analyse(args.data, ests, cfg, use_mask=args.mask)
     fit = [r for r in rows if r["im_id"] % 2 == 0]
     rep = [r for r in rows if r["im_id"] % 2 == 1]
     fb, cb = choose(fit, cfg)
     pc = cfg.parts
-    res = {"chosen": {"flag_below": fb, "colour_below": cb},
-           "configured": {"flag_below": pc.flag_below, "colour_below": pc.colour_below}, "n_images": len(rows),
+    res = {"chosen": {"flag_below": fb, "colour_weight": cb},
+           "configured": {"flag_below": pc.flag_below, "colour_weight": pc.colour_weight}, "n_images": len(rows),
            "estimated_fit_half": table(fit, cfg, fb, cb), "estimated_report_half": table(rep, cfg, fb, cb),
            "gt_pose_report_half": table(rep, cfg, fb, cb, key="parts_gt"),
-           "estimated_all_configured": table(rows, cfg, pc.flag_below, pc.colour_below),
-           "gt_pose_all_configured": table(rows, cfg, pc.flag_below, pc.colour_below, key="parts_gt"),
+           "estimated_all_configured": table(rows, cfg, pc.flag_below, pc.colour_weight),
+           "gt_pose_all_configured": table(rows, cfg, pc.flag_below, pc.colour_weight, key="parts_gt"),
            "edges_only_report_half": table(rep, cfg, choose_edges_only(fit, cfg), 0.0)}
     ok = [r for r in rows if "add_mm" in r]
     res["add"] = {"n": len(rows), "add_1cm_before": float(np.mean([r.get("add_mm", 1e9) < 10 for r in rows])),
                   "add_1cm_after_part_realignment": float(np.mean([r.get("add_robust_mm", 1e9) < 10 for r in rows])),
                   "realigned": int(sum(1 for r in ok if r["dropped"])),
                   "median_s_per_image": float(np.median([r["seconds"] for r in ok])) if ok else None}
-    print(f"chosen on the fitting half: flag_below {fb}, colour_below {cb}")
+    print(f"chosen on the fitting half: flag_below {fb}, colour_weight {cb}")
     for k in ("estimated_report_half", "gt_pose_report_half", "edges_only_report_half", "estimated_all_configured",
               "gt_pose_all_configured"):
         print(f"\n{k}\n{fmt(res[k])}")

@@ -371,10 +371,10 @@ RANGES.update({"align.min_contrast": (0, 1, True), "align.w_box": (0, None, True
 @dataclass
 class PartsConfig(_Section):
     """The part report (pixie.cues.parts): each part's support at the final pose and a verdict, for meshes with parts
-    (a GLB's sub-meshes, OBJ objects, connected components). Thresholds measured on the defects benchmark
-    (bench/defects_parts.py, bench/RESULTS.md "Part verdicts")."""
+    (a GLB's sub-meshes, OBJ objects, connected components). flag_below and colour_weight were chosen on the fitting
+    half of the 336-photo defects benchmark by bench/defects_parts.py's rule (bench/RESULTS.md "Part verdicts")."""
 
-    enabled: bool = True  # report parts when the mesh has them (about 0.2 s per photo)
+    enabled: bool = True  # report parts when the mesh has them (median 0.4 s per photo on the defects benchmark)
     robust: bool = True  # re-align without the parts judged missing / displaced, then judge again (pixie.cues.parts)
     fit_px: float = 1.5  # a part's contour pixel is supported by a same-orientation photo edge this close (crop px)
     kinds: list[str] = field(default_factory=lambda: ["silhouette", "step", "seam"])  # contour pixels that count
@@ -382,8 +382,8 @@ class PartsConfig(_Section):
     shift_frac: float = 0.12  # displaced-part search: slide the part's contour up to this share of the box's side
     min_points: int = 12  # fewer visible contour pixels: 'not visible'
     min_visible: float = 0.2  # less of the part in view (hidden by other parts, outside the box / mask): 'not visible'
-    flag_below: float = 0.6  # relative support (part / median part) below which a part is flagged ('missing' ...
-    colour_below: float = 0.0  # ... or whose paint consistency (share of its pixels near its median chroma) is below
+    flag_below: float = 0.0  # a part whose score (below) is under this is flagged ('missing' ...
+    colour_weight: float = 2.0  # score = relative edge support (part / median part) + this x (paint consistency - 1)
     colour_ab: float = 12.0  # chroma distance (CIELAB a*, b*) of "the same paint"
     shift_gain: float = 0.4  # ... 'displaced' when a shift raises its support by this (relative to the median)
     found_shifted: float = 0.97  # ... to at least this share of the median part's support)
@@ -394,7 +394,7 @@ PART_KINDS = ("silhouette", "step", "seam", "crease")  # pixie.cues.parts.part_c
 CHOICES["parts.kinds"] = PART_KINDS
 RANGES.update({"parts.fit_px": (0, 100, False), "parts.shift_frac": (0, 1, True), "parts.min_points": (1, None, True),
                "parts.min_visible": (0, 1, True), "parts.flag_below": (0, None, True), "parts.shift_gain": (0, None, True),
-               "parts.found_shifted": (0, None, True), "parts.colour_below": (0, 1, True),
+               "parts.found_shifted": (0, None, True), "parts.colour_weight": (0, 100, True),
                "parts.colour_ab": (0, 300, False), "parts.step_frac": (0, 1, True)})
 
 

@@ -16,7 +16,7 @@ Per part (:class:`PartSupport`):
 - ``visible``: its visible pixels / its pixels when rendered alone (hidden by other parts or outside the box / mask);
 - ``colour``: the share of its visible inner pixels whose chroma (CIELAB a*, b*) lies within ``colour_ab`` of their
   median: one paint gives ~1 whatever the shading, a region that shows a moved part and what it uncovered gives less
-  (for uniformly painted parts; ``colour_below`` 0 turns the cue off).
+  (for uniformly painted parts; ``colour_weight`` 0 turns the cue off).
 
 :func:`judge_parts` turns these into verdicts: ``not visible`` (too little of it to judge), ``missing``
 (its contour is unsupported and no shift finds it), ``displaced`` (unsupported where it should be, fully
@@ -40,7 +40,7 @@ from pixie.geometry.mesh import Mesh, from_arrays
 from pixie.geometry.render import RenderResult, Renderer
 from pixie.references.templates import edge_map
 
-__all__ = ["VERDICTS", "PartSupport", "part_contours", "part_renderers", "part_support", "judge_parts",
+__all__ = ["VERDICTS", "PartSupport", "part_contours", "part_renderers", "part_support", "part_score", "judge_parts",
            "robust_part_fit"]
 
 VERDICTS = ("present", "missing", "displaced", "not visible")
@@ -222,23 +222,30 @@ def part_support(renderer: Renderer, face_parts: np.ndarray, part_names, pe: Pho
     return out
 
 
-def judge_parts(parts: list[PartSupport], *, flag_below: float = 0.6, colour_below: float = 0.0,
+def part_score(p: PartSupport, colour_weight: float = 0.0) -> float:
+    """The evidence that a part is where the model has it: relative support + ``colour_weight`` x (colour
+    consistency - 1); about 1 for a present part, lower the less the photo agrees."""
+    return p.relative + colour_weight * (p.colour - 1.0)
+
+
+def judge_parts(parts: list[PartSupport], *, flag_below: float = 0.6, colour_weight: float = 0.0,
                 shift_gain: float = 0.4, found_shifted: float = 0.97, min_points: int = 12,
                 min_visible: float = 0.2) -> list[PartSupport]:
     """Set each part's verdict (in place; returns ``parts``); supports are relative to the median judged part.
 
     ``not visible``: fewer than ``min_points`` visible contour pixels or less than ``min_visible`` of it in view.
-    Otherwise a part is flagged when its relative support is below ``flag_below`` or its colour consistency below
-    ``colour_below``: ``displaced`` when a shift finds it (shifted support >= ``found_shifted`` of the median and
-    >= ``shift_gain`` above its own), else ``missing``. The others are ``present``. On repetitive assemblies (LEGO
-    studs) a shift also finds a neighbour's edges, hence the strict ``found_shifted``.
+    Otherwise a part is flagged when its :func:`part_score` (relative edge support, lowered by
+    ``colour_weight`` x its paint inconsistency) is below ``flag_below``: ``displaced`` when a shift finds it
+    (shifted support >= ``found_shifted`` of the median and >= ``shift_gain`` above its own), else ``missing``. The
+    others are ``present``. On repetitive assemblies (LEGO studs) a shift also finds a neighbour's edges, hence the
+    strict ``found_shifted``.
     """
     judged = [p.support for p in parts if p.n_points >= min_points and p.visible >= min_visible]
     med = float(np.median(judged)) if judged else 0.0
     for p in parts:
         if p.n_points < min_points or p.visible < min_visible or med <= 0:
             p.verdict = "not visible"
-        elif p.relative >= flag_below and p.colour >= colour_below:
+        elif part_score(p, colour_weight) >= flag_below:
             p.verdict = "present"
         elif p.shifted / med >= found_shifted and (p.shifted - p.support) / med >= shift_gain:
             p.verdict = "displaced"
