@@ -220,3 +220,14 @@ def test_inspect_reports_the_removed_part_in_the_json_and_refuses_a_one_piece_me
     rc = main(["inspect", *args[:1], str(tmp_path / "one.npz"), *args[2:]])
     err = capsys.readouterr().err
     assert rc == 2 and "inspect needs a mesh with parts" in err and "GLB" in err and "Traceback" not in err
+
+
+def test_the_batch_page_lists_photos_with_suspect_parts_first():
+    from pixie.app.batch import suspect_first
+
+    def rec(row, verdicts):
+        return {"row": row, "result": {"parts": [{"verdict": v} for v in verdicts]}}
+
+    recs = [rec(0, ["present", "present"]), rec(1, ["missing", "present"]), rec(2, []),
+            rec(3, ["displaced", "missing"]), rec(4, ["not visible", "present"])]
+    assert [r["row"] for r in suspect_first(recs)] == [3, 1, 0, 2, 4]
