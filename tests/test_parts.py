@@ -153,8 +153,8 @@ def test_a_removed_part_is_reported_missing_after_alignment_and_the_complete_ass
     """The pipeline's last two steps on a rendered LEGO-like assembly, 12 viewpoints: the edge alignment from
     4° / 2 % off, then the part report with the re-alignment that leaves flagged parts out (:func:`robust_part_fit`).
     Measured with the shipped config.parts: 11 / 12 within 2° and 2 % depth with the brick removed (one alignment
-    ends 5.9° off), the removed brick the only part reported (and as missing) in 11 / 12 (once a second brick is
-    flagged too), no part flagged on the complete assembly in 12 / 12."""
+    ends 5.9° off), the removed brick the only part reported, and as missing, in 12 / 12, no part flagged on the
+    complete assembly in 12 / 12."""
     mesh = lego["mesh"]
     n_pose = n_missing = n_clean = 0
     for seed in range(12):
@@ -231,3 +231,19 @@ def test_the_batch_page_lists_photos_with_suspect_parts_first():
     recs = [rec(0, ["present", "present"]), rec(1, ["missing", "present"]), rec(2, []),
             rec(3, ["displaced", "missing"]), rec(4, ["not visible", "present"])]
     assert [r["row"] for r in suspect_first(recs)] == [3, 1, 0, 2, 4]
+
+
+def test_verdicts_are_relative_to_the_assembly_so_a_textured_photo_flags_nothing():
+    from pixie.cues.parts import PartSupport
+
+    def parts(colours, supports):
+        return [PartSupport(index=k, name=f"p{k}", support=s, relative=s / float(np.median(supports)), shifted=s,
+                            shift_px=0.0, visible=1.0, n_points=100, colour=c)
+                for k, (c, s) in enumerate(zip(colours, supports))]
+
+    # every part half uniform (texture, one grey paint): nothing stands out, nothing is flagged
+    flat = judge_parts(parts([0.4, 0.45, 0.42, 0.38], [0.8, 0.85, 0.9, 0.82]), **JUDGE)
+    assert [p.verdict for p in flat] == ["present"] * 4
+    # one part without edges and with mixed colours among uniform ones: that one is missing
+    one = judge_parts(parts([0.95, 0.97, 0.3, 0.96], [0.8, 0.85, 0.1, 0.82]), **JUDGE)
+    assert [p.verdict for p in one] == ["present", "present", "missing", "present"]

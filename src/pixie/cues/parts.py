@@ -222,10 +222,12 @@ def part_support(renderer: Renderer, face_parts: np.ndarray, part_names, pe: Pho
     return out
 
 
-def part_score(p: PartSupport, colour_weight: float = 0.0) -> float:
-    """The evidence that a part is where the model has it: relative support + ``colour_weight`` x (colour
-    consistency - 1); about 1 for a present part, lower the less the photo agrees."""
-    return p.relative + colour_weight * (p.colour - 1.0)
+def part_score(p: PartSupport, colour_weight: float = 0.0, colour_median: float = 1.0) -> float:
+    """The evidence that a part is where the model has it: relative support + ``colour_weight`` x (min(colour
+    consistency / the median part's, 1) - 1); about 1 for a present part, lower the less the photo agrees. Relative
+    like the support, so a photo where no part looks uniformly painted (texture, a single grey) flags none."""
+    rel_colour = min(p.colour / colour_median, 1.0) if colour_median > 0 else 1.0
+    return p.relative + colour_weight * (rel_colour - 1.0)
 
 
 def judge_parts(parts: list[PartSupport], *, flag_below: float = 0.6, colour_weight: float = 0.0,
@@ -235,17 +237,18 @@ def judge_parts(parts: list[PartSupport], *, flag_below: float = 0.6, colour_wei
 
     ``not visible``: fewer than ``min_points`` visible contour pixels or less than ``min_visible`` of it in view.
     Otherwise a part is flagged when its :func:`part_score` (relative edge support, lowered by
-    ``colour_weight`` x its paint inconsistency) is below ``flag_below``: ``displaced`` when a shift finds it
+    ``colour_weight`` x its paint inconsistency relative to the median part's) is below ``flag_below``: ``displaced`` when a shift finds it
     (shifted support >= ``found_shifted`` of the median and >= ``shift_gain`` above its own), else ``missing``. The
     others are ``present``. On repetitive assemblies (LEGO studs) a shift also finds a neighbour's edges, hence the
     strict ``found_shifted``.
     """
-    judged = [p.support for p in parts if p.n_points >= min_points and p.visible >= min_visible]
-    med = float(np.median(judged)) if judged else 0.0
+    judged = [p for p in parts if p.n_points >= min_points and p.visible >= min_visible]
+    med = float(np.median([p.support for p in judged])) if judged else 0.0
+    med_colour = float(np.median([p.colour for p in judged])) if judged else 1.0
     for p in parts:
         if p.n_points < min_points or p.visible < min_visible or med <= 0:
             p.verdict = "not visible"
-        elif part_score(p, colour_weight) >= flag_below:
+        elif part_score(p, colour_weight, med_colour) >= flag_below:
             p.verdict = "present"
         elif p.shifted / med >= found_shifted and (p.shifted - p.support) / med >= shift_gain:
             p.verdict = "displaced"
