@@ -59,7 +59,8 @@ def _kw(cfg: PixieConfig, flag_below: float | None = None,
                    colour_ab=pc.colour_ab, step_frac=pc.step_frac,
                    kinds=tuple(PART_KINDS.index(k) for k in pc.kinds))
     judge = dict(flag_below=pc.flag_below if flag_below is None else flag_below,
-                 colour_weight=pc.colour_weight if colour_weight is None else colour_weight, shift_gain=pc.shift_gain,
+                 colour_weight=pc.colour_weight if colour_weight is None else colour_weight,
+                 supported_above=pc.supported_above, shift_gain=pc.shift_gain,
                  found_shifted=pc.found_shifted, min_points=pc.min_points, min_visible=pc.min_visible)
     align = dict(schedule=tuple(ac.schedule), iters=ac.iters, crease_weight=ac.crease_weight, search=ac.search,
                  min_contrast=ac.min_contrast, w_box=ac.w_box, fit_px=ac.fit_px)

@@ -136,7 +136,8 @@ def _turned(T, centre, deg, dz, seed):
 
 SUPPORT = dict(kinds=tuple(PART_KINDS.index(k) for k in PC.kinds), fit_px=PC.fit_px, shift_frac=PC.shift_frac,
                min_points=PC.min_points, colour_ab=PC.colour_ab, step_frac=PC.step_frac)
-JUDGE = dict(flag_below=PC.flag_below, colour_weight=PC.colour_weight, shift_gain=PC.shift_gain,
+JUDGE = dict(flag_below=PC.flag_below, colour_weight=PC.colour_weight, supported_above=PC.supported_above,
+             shift_gain=PC.shift_gain,
              found_shifted=PC.found_shifted, min_points=PC.min_points, min_visible=PC.min_visible)
 _AC = PixieConfig().align
 ALIGN = dict(schedule=tuple(_AC.schedule), iters=_AC.iters, crease_weight=_AC.crease_weight, search=_AC.search,
@@ -244,6 +245,9 @@ def test_verdicts_are_relative_to_the_assembly_so_a_textured_photo_flags_nothing
     # every part half uniform (texture, one grey paint): nothing stands out, nothing is flagged
     flat = judge_parts(parts([0.4, 0.45, 0.42, 0.38], [0.8, 0.85, 0.9, 0.82]), **JUDGE)
     assert [p.verdict for p in flat] == ["present"] * 4
+    # a part with a fully supported contour is present whatever its colours (a shadow, a sticker)
+    odd = judge_parts(parts([0.95, 0.3, 0.96, 0.97], [0.8, 0.85, 0.9, 0.82]), **JUDGE)
+    assert [p.verdict for p in odd] == ["present"] * 4
     # one part without edges and with mixed colours among uniform ones: that one is missing
     one = judge_parts(parts([0.95, 0.97, 0.3, 0.96], [0.8, 0.85, 0.1, 0.82]), **JUDGE)
     assert [p.verdict for p in one] == ["present", "present", "missing", "present"]

@@ -385,6 +385,7 @@ class PartsConfig(_Section):
     flag_below: float = 0.0  # a part whose score (below) is under this is flagged ('missing' ...
     colour_weight: float = 2.0  # score = relative edge support + this x (relative paint consistency, at most 1, - 1)
     colour_ab: float = 12.0  # chroma distance (CIELAB a*, b*) of "the same paint"
+    supported_above: float = 1.0  # ... but never a part whose relative edge support is at least this (colour alone)
     shift_gain: float = 0.4  # ... 'displaced' when a shift raises its support by this (relative to the median)
     found_shifted: float = 0.97  # ... to at least this share of the median part's support)
 
@@ -394,7 +395,7 @@ PART_KINDS = ("silhouette", "step", "seam", "crease")  # pixie.cues.parts.part_c
 CHOICES["parts.kinds"] = PART_KINDS
 RANGES.update({"parts.fit_px": (0, 100, False), "parts.shift_frac": (0, 1, True), "parts.min_points": (1, None, True),
                "parts.min_visible": (0, 1, True), "parts.flag_below": (-10, 10, True), "parts.shift_gain": (0, None, True),
-               "parts.found_shifted": (0, None, True), "parts.colour_weight": (0, 100, True),
+               "parts.found_shifted": (0, None, True), "parts.colour_weight": (0, 100, True), "parts.supported_above": (0, 100, True),
                "parts.colour_ab": (0, 300, False), "parts.step_frac": (0, 1, True)})
 
 

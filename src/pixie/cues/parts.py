@@ -231,13 +231,14 @@ def part_score(p: PartSupport, colour_weight: float = 0.0, colour_median: float 
 
 
 def judge_parts(parts: list[PartSupport], *, flag_below: float = 0.6, colour_weight: float = 0.0,
-                shift_gain: float = 0.4, found_shifted: float = 0.97, min_points: int = 12,
-                min_visible: float = 0.2) -> list[PartSupport]:
+                supported_above: float = 1.0, shift_gain: float = 0.4, found_shifted: float = 0.97,
+                min_points: int = 12, min_visible: float = 0.2) -> list[PartSupport]:
     """Set each part's verdict (in place; returns ``parts``); supports are relative to the median judged part.
 
     ``not visible``: fewer than ``min_points`` visible contour pixels or less than ``min_visible`` of it in view.
     Otherwise a part is flagged when its :func:`part_score` (relative edge support, lowered by
-    ``colour_weight`` x its paint inconsistency relative to the median part's) is below ``flag_below``: ``displaced`` when a shift finds it
+    ``colour_weight`` x its paint inconsistency relative to the median part's) is below ``flag_below`` and its
+    relative edge support below ``supported_above`` (colour alone never flags a well-supported contour): ``displaced`` when a shift finds it
     (shifted support >= ``found_shifted`` of the median and >= ``shift_gain`` above its own), else ``missing``. The
     others are ``present``. On repetitive assemblies (LEGO studs) a shift also finds a neighbour's edges, hence the
     strict ``found_shifted``.
@@ -248,7 +249,7 @@ def judge_parts(parts: list[PartSupport], *, flag_below: float = 0.6, colour_wei
     for p in parts:
         if p.n_points < min_points or p.visible < min_visible or med <= 0:
             p.verdict = "not visible"
-        elif part_score(p, colour_weight, med_colour) >= flag_below:
+        elif part_score(p, colour_weight, med_colour) >= flag_below or p.relative >= supported_above:
             p.verdict = "present"
         elif p.shifted / med >= found_shifted and (p.shifted - p.support) / med >= shift_gain:
             p.verdict = "displaced"

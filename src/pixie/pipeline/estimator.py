@@ -264,7 +264,8 @@ class PoseEstimator:
         support_kw = dict(fit_px=pc.fit_px, shift_frac=pc.shift_frac, min_points=pc.min_points,
                           colour_ab=pc.colour_ab, step_frac=pc.step_frac,
                           kinds=tuple(PART_KINDS.index(k) for k in pc.kinds))
-        judge_kw = dict(flag_below=pc.flag_below, colour_weight=pc.colour_weight, shift_gain=pc.shift_gain,
+        judge_kw = dict(flag_below=pc.flag_below, colour_weight=pc.colour_weight, supported_above=pc.supported_above,
+                        shift_gain=pc.shift_gain,
                         found_shifted=pc.found_shifted, min_points=pc.min_points, min_visible=pc.min_visible)
         if pc.robust:
             if q.box_source == "prior":  # a grown search region, not the object's sides
