@@ -371,7 +371,7 @@ RANGES.update({"align.min_contrast": (0, 1, True), "align.w_box": (0, None, True
 @dataclass
 class PartsConfig(_Section):
     """The part report (pixie.cues.parts): each part's support at the final pose and a verdict, for meshes with parts
-    (a GLB's sub-meshes, OBJ objects, connected components). flag_below and colour_weight were chosen on the fitting
+    (a GLB's sub-meshes, or connected components). flag_below and colour_weight were chosen on the fitting
     half of the 336-photo defects benchmark by bench/defects_parts.py's rule (bench/RESULTS.md "Part verdicts")."""
 
     enabled: bool = True  # report parts when the mesh has them (median 0.4 s per photo on the defects benchmark)

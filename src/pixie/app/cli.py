@@ -343,7 +343,7 @@ def _needs_parts(mesh) -> None:
     """``pixie inspect``: refuse a one-piece mesh, saying what file would do."""
     if mesh.n_parts < 2:
         raise UsageError(f"inspect needs a mesh with parts; {mesh.name!r} is one piece. Give a GLB / glTF with one "
-                         "sub-mesh per part (or an OBJ with objects, or a mesh whose parts are separate connected "
+                         "sub-mesh per part (or a mesh whose parts are separate connected "
                          "components) and build its references from that file")
 
 
@@ -609,7 +609,7 @@ def build_parser() -> argparse.ArgumentParser:
     _add_estimate_args(e)
     e.set_defaults(func=cmd_estimate, inspect=False)
     ins = sub.add_parser("inspect", help="pose + part report: is every part of the assembly where the CAD model has "
-                         "it? (the mesh needs parts: a GLB/glTF with one sub-mesh per part, OBJ objects, or separate "
+                         "it? (the mesh needs parts: a GLB/glTF with one sub-mesh per part, or separate "
                          "connected components); the same options as estimate")
     _add_estimate_args(ins)
     ins.set_defaults(func=cmd_estimate, inspect=True)

@@ -1,6 +1,6 @@
 """Part support: does every part of the CAD model agree with the photo at the estimated pose?
 
-For a mesh with parts (:attr:`pixie.geometry.mesh.Mesh.face_parts`: a GLB's sub-meshes, OBJ objects or connected
+For a mesh with parts (:attr:`pixie.geometry.mesh.Mesh.face_parts`: a GLB's sub-meshes or connected
 components), the model is rendered at the pose in the alignment crop's camera (:class:`PhotoEdges`). Each part's
 visible contour pixels are its silhouette, its creases, the depth steps where it is in front, and its seams with
 other parts. A pixel counts as *supported* when a photo edge of the same orientation (±1 bin) lies within

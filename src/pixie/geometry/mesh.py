@@ -4,7 +4,8 @@ pixie works in millimetres throughout. Meshes in metres (a classic 1000x mistake
 detected from their size and either converted (``units='auto'``) or warned about.
 
 Parts (``Mesh.face_parts``, ``Mesh.part_names``): the named sub-meshes of a multi-mesh file (GLB / glTF
-scene nodes, OBJ objects), else the connected components of a single mesh when there are 2 to
+scene nodes; trimesh merges an OBJ's objects, which then count as components), else the connected components
+of a single mesh when there are 2 to
 ``MAX_COMPONENT_PARTS`` of them; components under ``MIN_PART_AREA`` of the surface join the part they are
 nearest to. A mesh without parts has ``face_parts is None``.
 """
