@@ -39,9 +39,10 @@ REPO = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(REPO / "src"))
 sys.path.insert(0, str(REPO / "bench"))
 
-from pixie.config import PART_KINDS, PixieConfig  # noqa: E402
+from pixie.config import PixieConfig  # noqa: E402
 from pixie.cues.edge_align import photo_edges  # noqa: E402
-from pixie.cues.parts import PartSupport, judge_parts, part_renderers, part_support, robust_part_fit  # noqa: E402
+from pixie.cues.parts import (PartSupport, judge_parts, part_renderers, part_support, report_kwargs,  # noqa: E402
+                              robust_part_fit)
 from pixie.eval import pose_error as M  # noqa: E402
 from pixie.eval.datasets import BopDataset  # noqa: E402
 from pixie.geometry.mesh import load_mesh  # noqa: E402
@@ -55,13 +56,11 @@ PART_DEFECTS = ("missing", "shifted", "rotated", "wrong")
 def _kw(cfg: PixieConfig, flag_below: float | None = None,
         colour_weight: float | None = None) -> tuple[dict, dict, dict]:
     pc, ac = cfg.parts, cfg.align
-    support = dict(fit_px=pc.fit_px, shift_frac=pc.shift_frac, min_points=pc.min_points,
-                   colour_ab=pc.colour_ab, step_frac=pc.step_frac,
-                   kinds=tuple(PART_KINDS.index(k) for k in pc.kinds))
-    judge = dict(flag_below=pc.flag_below if flag_below is None else flag_below,
-                 colour_weight=pc.colour_weight if colour_weight is None else colour_weight,
-                 supported_above=pc.supported_above, shift_gain=pc.shift_gain,
-                 found_shifted=pc.found_shifted, min_points=pc.min_points, min_visible=pc.min_visible)
+    support, judge = report_kwargs(pc)
+    if flag_below is not None:
+        judge["flag_below"] = flag_below
+    if colour_weight is not None:
+        judge["colour_weight"] = colour_weight
     align = dict(schedule=tuple(ac.schedule), iters=ac.iters, crease_weight=ac.crease_weight, search=ac.search,
                  min_contrast=ac.min_contrast, w_box=ac.w_box, fit_px=ac.fit_px)
     return support, judge, align

@@ -8,7 +8,7 @@ import pytest
 
 from pixie.config import PART_KINDS, PixieConfig, RefsConfig
 from pixie.cues.edge_align import align, photo_edges
-from pixie.cues.parts import judge_parts, part_renderers, part_support, robust_part_fit
+from pixie.cues.parts import judge_parts, part_renderers, part_support, report_kwargs, robust_part_fit
 from pixie.errors import ConfigError, MeshError
 from pixie.geometry.camera import look_at, make_K, rotation_angle_deg
 from pixie.geometry.mesh import component_parts, from_arrays, load_mesh
@@ -134,11 +134,7 @@ def _turned(T, centre, deg, dz, seed):
     return out
 
 
-SUPPORT = dict(kinds=tuple(PART_KINDS.index(k) for k in PC.kinds), fit_px=PC.fit_px, shift_frac=PC.shift_frac,
-               min_points=PC.min_points, colour_ab=PC.colour_ab, step_frac=PC.step_frac)
-JUDGE = dict(flag_below=PC.flag_below, colour_weight=PC.colour_weight, supported_above=PC.supported_above,
-             shift_gain=PC.shift_gain,
-             found_shifted=PC.found_shifted, min_points=PC.min_points, min_visible=PC.min_visible)
+SUPPORT, JUDGE = report_kwargs(PC)  # the shipped config.parts
 _AC = PixieConfig().align
 ALIGN = dict(schedule=tuple(_AC.schedule), iters=_AC.iters, crease_weight=_AC.crease_weight, search=_AC.search,
              w_box=_AC.w_box)

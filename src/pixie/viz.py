@@ -12,6 +12,7 @@ from pixie.references.encode import shade
 from pixie.paths import write_atomic
 from pixie.references.set import ReferenceSet, encoding_images
 from pixie.geometry.render import Renderer
+from pixie.pose.results import SUSPECT_VERDICTS
 
 EST_COLOR = (255, 40, 40)
 GT_COLOR = (40, 220, 40)
@@ -137,14 +138,14 @@ def draw_parts(image: np.ndarray, parts, radius: int = 1) -> np.ndarray:
     ``parts``: :class:`pixie.cues.parts.PartSupport` records (``uv`` photo px, ``verdict``, ``name``).
     """
     out = _rgb(image).copy()
-    for p in sorted(parts, key=lambda p: p.verdict in ("missing", "displaced")):  # suspects drawn last (on top)
+    for p in sorted(parts, key=lambda p: p.verdict in SUSPECT_VERDICTS):  # suspects drawn last (on top)
         col = VERDICT_COLORS.get(p.verdict, (255, 255, 255))
         for u, v in np.rint(np.asarray(p.uv)).astype(int):
             cv2.circle(out, (int(u), int(v)), radius, col, -1)
     h = out.shape[0]
     scale = max(0.35, min(0.8, h / 1200))
     for p in parts:
-        if p.verdict in ("missing", "displaced") and len(p.uv):
+        if p.verdict in SUSPECT_VERDICTS and len(p.uv):
             u, v = np.asarray(p.uv).mean(axis=0)
             org = (int(u) + 4, int(v))
             text = f"{p.name}: {p.verdict}"

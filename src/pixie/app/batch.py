@@ -53,7 +53,7 @@ from pixie.pipeline.estimator import PoseEstimator
 from pixie.eval.datasets import PoseEstimate, write_results_csv
 from pixie.paths import remove_stale_temps, write_atomic
 from pixie.pipeline.query import bbox_from_mask, check_bbox, load_image
-from pixie.pose.results import NO_BOX_WHY
+from pixie.pose.results import NO_BOX_WHY, SUSPECT_VERDICTS
 from pixie.references.store import ensure_templates, load_reference_set
 from pixie.geometry.render import Renderer
 from pixie.viz import draw_parts, encode_png, overlay_result, pose_detail, status_view
@@ -400,7 +400,7 @@ def suspect_first(records: list[dict]) -> list[dict]:
     """Records ordered for an inspector: photos with suspect parts first (most first), then the rest, each group in
     batch order."""
     def n_suspect(r: dict) -> int:
-        return sum(p.get("verdict") in ("missing", "displaced") for p in r["result"].get("parts") or [])
+        return sum(p.get("verdict") in SUSPECT_VERDICTS for p in r["result"].get("parts") or [])
 
     return sorted(records, key=lambda r: (-n_suspect(r), r["row"]))
 
@@ -422,7 +422,7 @@ def _html(records: list[dict], n_total: int, config: PixieConfig) -> str:
         img = (f'<a href="{html.escape(shown)}"><img src="{html.escape(shown)}" width="480"></a>'
                if shown else "")
         if with_parts:
-            sus = [p for p in res.get("parts") or [] if p.get("verdict") in ("missing", "displaced")]
+            sus = [p for p in res.get("parts") or [] if p.get("verdict") in SUSPECT_VERDICTS]
             status += "<br>" + ("<b>suspect parts:</b> " + ", ".join(
                 f"{html.escape(p['name'])} ({p['verdict']}, support {p['support']:.2f})" for p in sus)
                 if sus else "parts: none suspect")

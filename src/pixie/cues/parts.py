@@ -24,7 +24,7 @@ supported nearby), ``present``. Thresholds are ``config.parts`` (calibrated on t
 ``bench/defects_parts.py``).
 
 >>> parts = part_support(renderer, mesh.face_parts, mesh.part_names, pe, T)
->>> parts = judge_parts(parts, flag_below=0.6)
+>>> parts = judge_parts(parts, **report_kwargs(config.parts)[1])
 """
 
 from __future__ import annotations
@@ -34,14 +34,16 @@ from dataclasses import dataclass, field, replace
 import cv2
 import numpy as np
 
+from pixie.config import PART_KINDS, PartsConfig
 from pixie.cues.edge_align import align, edge_distances
 from pixie.cues.edge_photo import PhotoEdges
 from pixie.geometry.mesh import Mesh, from_arrays
 from pixie.geometry.render import RenderResult, Renderer
+from pixie.pose.results import SUSPECT_VERDICTS
 from pixie.references.templates import edge_map
 
-__all__ = ["VERDICTS", "PartSupport", "part_contours", "part_renderers", "part_support", "part_score", "judge_parts",
-           "robust_part_fit"]
+__all__ = ["VERDICTS", "PartSupport", "report_kwargs", "part_contours", "part_renderers", "part_support", "part_score",
+           "judge_parts", "robust_part_fit"]
 
 VERDICTS = ("present", "missing", "displaced", "not visible")
 
@@ -70,6 +72,16 @@ class PartSupport:
                 "support": round(self.support, 4), "relative": round(self.relative, 4),
                 "shifted_support": round(self.shifted, 4), "shift_px": round(self.shift_px, 2),
                 "visible": round(self.visible, 4), "n_points": self.n_points, "colour": round(self.colour, 4)}
+
+
+def report_kwargs(pc: PartsConfig) -> tuple[dict, dict]:
+    """The keywords of :func:`part_support` and of :func:`judge_parts` that ``config.parts`` sets."""
+    support = dict(fit_px=pc.fit_px, shift_frac=pc.shift_frac, min_points=pc.min_points, colour_ab=pc.colour_ab,
+                   step_frac=pc.step_frac, kinds=tuple(PART_KINDS.index(k) for k in pc.kinds))
+    judge = dict(flag_below=pc.flag_below, colour_weight=pc.colour_weight, supported_above=pc.supported_above,
+                 shift_gain=pc.shift_gain, found_shifted=pc.found_shifted, min_points=pc.min_points,
+                 min_visible=pc.min_visible)
+    return support, judge
 
 
 def part_renderers(mesh: Mesh) -> list[Renderer]:
@@ -238,9 +250,9 @@ def judge_parts(parts: list[PartSupport], *, flag_below: float = 0.6, colour_wei
     ``not visible``: fewer than ``min_points`` visible contour pixels or less than ``min_visible`` of it in view.
     Otherwise a part is flagged when its :func:`part_score` (relative edge support, lowered by
     ``colour_weight`` x its paint inconsistency relative to the median part's) is below ``flag_below`` and its
-    relative edge support below ``supported_above`` (colour alone never flags a well-supported contour): ``displaced`` when a shift finds it
-    (shifted support >= ``found_shifted`` of the median and >= ``shift_gain`` above its own), else ``missing``. The
-    others are ``present``. On repetitive assemblies (LEGO studs) a shift also finds a neighbour's edges, hence the
+    relative edge support below ``supported_above`` (colour alone never flags a well-supported contour):
+    ``displaced`` when a shift finds it (shifted support >= ``found_shifted`` of the median and >= ``shift_gain``
+    above its own), else ``missing``. The others are ``present``. On repetitive assemblies (LEGO studs) a shift also finds a neighbour's edges, hence the
     strict ``found_shifted``.
     """
     judged = [p for p in parts if p.n_points >= min_points and p.visible >= min_visible]
@@ -277,7 +289,7 @@ def robust_part_fit(renderer: Renderer, face_parts: np.ndarray, part_names, pe: 
         replace(renderer.mesh, face_parts=np.asarray(face_parts), part_names=tuple(part_names)))
     ps = judge_parts(part_support(renderer, face_parts, part_names, pe, T, renderers=renderers, **support_kw),
                      **judge_kw)
-    drop = [p.index for p in ps if p.verdict in ("missing", "displaced")]
+    drop = [p.index for p in ps if p.verdict in SUSPECT_VERDICTS]
     if not drop or len(drop) >= sum(p.verdict != "not visible" for p in ps):
         return np.asarray(T, np.float64), ps, []
     res = align(renderer, pe, T, face_parts=face_parts, drop_parts=drop, **align_kw)

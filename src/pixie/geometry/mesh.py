@@ -227,8 +227,8 @@ def load_mesh(path: str | Path, units: str = "auto", implausible: str = "warn") 
             warnings.simplefilter("ignore")
             raw = trimesh.load(path, process=False)
             loaded, face_parts, part_names = _scene_parts(raw)
-            if loaded is None:
-                loaded = trimesh.load(path, force="mesh", process=False)
+            if loaded is None:  # one mesh as read; a scene (or point cloud) merged as trimesh merges it
+                loaded = raw if isinstance(raw, trimesh.Trimesh) else trimesh.load(path, force="mesh", process=False)
     except Exception as exc:  # trimesh raises many types on corrupt files
         raise MeshError(f"cannot read mesh {path}: {type(exc).__name__}: {exc}") from exc
     if not isinstance(loaded, trimesh.Trimesh):

@@ -45,7 +45,7 @@ from pixie.geometry.camera import (
     rotation_angle_deg,
     validate_pose,
 )
-from pixie.config import PART_KINDS, PixieConfig
+from pixie.config import PixieConfig
 from pixie.errors import ConfigError, ImageError
 from pixie.features import Features
 from pixie.geometry.rotations import check_image
@@ -69,7 +69,7 @@ from pixie.cues.refine import aligned_correspondences, render_in_crop
 from pixie.geometry.render import Renderer
 from pixie.cues.edge_align import align, edge_fit, flip_twins, photo_edges
 from pixie.cues.edges import EdgeQuery
-from pixie.cues.parts import judge_parts, part_renderers, part_support, robust_part_fit
+from pixie.cues.parts import judge_parts, part_renderers, part_support, report_kwargs, robust_part_fit
 from pixie.cues.shape import fused_score, shape_cues
 from pixie.pose.results import NO_BOX_MESSAGE, Hypothesis, PoseResult, set_confidences
 from pixie.references.views import roll_angles
@@ -261,12 +261,7 @@ class PoseEstimator:
         ren, _, align_kw = self._align_setup(q, photo=False)  # the alignment's photo edges when it ran
         if self._part_renderers is None:
             self._part_renderers = part_renderers(mesh)
-        support_kw = dict(fit_px=pc.fit_px, shift_frac=pc.shift_frac, min_points=pc.min_points,
-                          colour_ab=pc.colour_ab, step_frac=pc.step_frac,
-                          kinds=tuple(PART_KINDS.index(k) for k in pc.kinds))
-        judge_kw = dict(flag_below=pc.flag_below, colour_weight=pc.colour_weight, supported_above=pc.supported_above,
-                        shift_gain=pc.shift_gain,
-                        found_shifted=pc.found_shifted, min_points=pc.min_points, min_visible=pc.min_visible)
+        support_kw, judge_kw = report_kwargs(pc)
         if pc.robust:
             if q.box_source == "prior":  # a grown search region, not the object's sides
                 align_kw["w_box"] = 0.0

@@ -126,7 +126,7 @@ class PoseResult:
     @property
     def suspect_parts(self) -> list[str]:
         """Names of the parts judged missing or displaced (empty without a part report)."""
-        return [p["name"] for p in self.parts if p.get("verdict") in ("missing", "displaced")]
+        return [p["name"] for p in self.parts if p.get("verdict") in SUSPECT_VERDICTS]
 
     def to_dict(self) -> dict:
         """Everything as JSON-able data (poses as nested lists, mm)."""
@@ -164,6 +164,7 @@ class PoseResult:
         }
 
 
+SUSPECT_VERDICTS = ("missing", "displaced")  # the part report's verdicts that flag a part (pixie.cues.parts)
 PARTS_NOTE = ("per part of the CAD model at the final pose: support = share of its visible contour pixels "
               "(silhouette, depth steps, seams) within parts.fit_px of a same-orientation photo edge; relative = "
               "support / the median part's; shifted_support = the best support with the contour slid up to "
