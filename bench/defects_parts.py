@@ -41,7 +41,7 @@ sys.path.insert(0, str(REPO / "bench"))
 
 from pixie.config import PixieConfig  # noqa: E402
 from pixie.cues.edge_align import photo_edges  # noqa: E402
-from pixie.cues.parts import (PartSupport, judge_parts, part_renderers, part_support, report_kwargs,  # noqa: E402
+from pixie.cues.parts import (PartSupport, complement_renderers, judge_parts, part_renderers, part_support, report_kwargs,  # noqa: E402
                               robust_part_fit)
 from pixie.eval import pose_error as M  # noqa: E402
 from pixie.eval.datasets import BopDataset  # noqa: E402
@@ -50,17 +50,19 @@ from pixie.geometry.render import Renderer  # noqa: E402
 
 GRID = [round(x, 2) for x in np.arange(-0.5, 0.951, 0.05)]  # flag_below (a score below 0: colour_weight > 0)
 COLOUR_GRID = [0.0, 0.5, 1.0, 1.5, 2.0, 3.0]
+REVEALED_GRID = [0.0, 0.5, 1.0, 1.5, 2.0]  # 0: the session-10 score (no contrast with the model without the part)
+SHIFT_GRID = [0.0, 0.5, 1.0]  # weight of the shift search's gain in the score
 PART_DEFECTS = ("missing", "shifted", "rotated", "wrong")
 
 
-def _kw(cfg: PixieConfig, flag_below: float | None = None,
-        colour_weight: float | None = None) -> tuple[dict, dict, dict]:
+def _kw(cfg: PixieConfig, flag_below: float | None = None, colour_weight: float | None = None,
+        revealed_weight: float | None = None, shift_weight: float | None = None) -> tuple[dict, dict, dict]:
     pc, ac = cfg.parts, cfg.align
     support, judge = report_kwargs(pc)
-    if flag_below is not None:
-        judge["flag_below"] = flag_below
-    if colour_weight is not None:
-        judge["colour_weight"] = colour_weight
+    for k, v in (("flag_below", flag_below), ("colour_weight", colour_weight), ("revealed_weight", revealed_weight),
+                 ("shift_weight", shift_weight)):
+        if v is not None:
+            judge[k] = v
     align = dict(schedule=tuple(ac.schedule), iters=ac.iters, crease_weight=ac.crease_weight, search=ac.search,
                  min_contrast=ac.min_contrast, w_box=ac.w_box, fit_px=ac.fit_px)
     return support, judge, align
@@ -101,8 +103,9 @@ def analyse(data: Path, ests: dict, cfg: PixieConfig, echo=print, use_mask: bool
         oid = v["obj_id"]
         if oid not in models:
             m = load_mesh(data / "models_parts" / f"obj_{oid:06d}.glb")
-            models[oid] = (m, Renderer(m, smooth_normals=True), part_renderers(m))
-        mesh, ren, prs = models[oid]
+            models[oid] = (m, Renderer(m, smooth_normals=True), part_renderers(m),
+                           complement_renderers(m, smooth_normals=True))
+        mesh, ren, prs, comps = models[oid]
         phys = data / v["model_dir"] / f"obj_{v['model_obj_id']:06d}.ply"
         if str(phys) not in phys_pts:
             phys_pts[str(phys)] = load_mesh(phys).sample_points(2000, seed=1)
@@ -120,7 +123,7 @@ def analyse(data: Path, ests: dict, cfg: PixieConfig, echo=print, use_mask: bool
         t = time.perf_counter()
         if not rec["failed"]:
             T = np.asarray(est["T"], np.float64)
-            Tr, ps, dropped = robust_part_fit(ren, mesh.face_parts, mesh.part_names, pe, T, renderers=prs,
+            Tr, ps, dropped = robust_part_fit(ren, mesh.face_parts, mesh.part_names, pe, T, renderers=prs, complements=comps,
                                               align_kw=dict(hull=mesh.hull_vertices, **align_kw),
                                               support_kw=support_kw, judge_kw=judge_kw)
             rec.update(add_mm=float(M.add(T, inst.T_cam_from_obj, phys_pts[str(phys)])),
@@ -129,6 +132,7 @@ def analyse(data: Path, ests: dict, cfg: PixieConfig, echo=print, use_mask: bool
                        dropped=dropped, parts=[p.as_dict() for p in ps])
         rec["seconds"] = time.perf_counter() - t
         gt = judge_parts(part_support(ren, mesh.face_parts, mesh.part_names, pe, inst.T_cam_from_obj, renderers=prs,
+                                      complements=comps,
                                       **support_kw), **judge_kw)
         rec["parts_gt"] = [p.as_dict() for p in gt]
         rows.append(rec)
@@ -137,16 +141,20 @@ def analyse(data: Path, ests: dict, cfg: PixieConfig, echo=print, use_mask: bool
     return rows
 
 
-def rejudge(parts: list[dict], cfg: PixieConfig, flag_below: float, colour_weight: float) -> list[str]:
-    """Verdicts of stored part records under other thresholds (:func:`judge_parts` on the records)."""
-    _, judge, _ = _kw(cfg, flag_below, colour_weight)
+def rejudge(parts: list[dict], cfg: PixieConfig, params: tuple) -> list[str]:
+    """Verdicts of stored part records under other (flag_below, colour_weight, revealed_weight, shift_weight)
+    (:func:`judge_parts` on the records)."""
+    _, judge, _ = _kw(cfg, *params)
     ps = [PartSupport(index=p["index"], name=p["name"], support=p["support"], relative=p["relative"],
                       shifted=p["shifted_support"], shift_px=p["shift_px"], visible=p["visible"],
-                      n_points=p["n_points"], colour=p.get("colour", 1.0)) for p in parts]
+                      n_points=p["n_points"], colour=p.get("colour", 1.0),
+                      exclusive=p.get("exclusive_support", 0.0), n_exclusive=p.get("n_exclusive", 0),
+                      revealed=p.get("revealed_support", 0.0), n_revealed=p.get("n_revealed", 0),
+                      exclusive_shifted=p.get("exclusive_shifted_support", 0.0)) for p in parts]
     return [p.verdict for p in judge_parts(ps, **judge)]
 
 
-def table(rows: list[dict], cfg: PixieConfig, flag_below: float, colour_weight: float, key: str = "parts") -> dict:
+def table(rows: list[dict], cfg: PixieConfig, params: tuple, key: str = "parts") -> dict:
     """Per defect type: recall of the defective part (flagged missing or displaced), the share flagged with the
     right kind (missing for 'missing', displaced for shifted / rotated), and on correct assemblies the false alarms
     (flagged parts) per image. 'extra' has no defective part of the CAD model: the share of its images with any
@@ -159,7 +167,7 @@ def table(rows: list[dict], cfg: PixieConfig, flag_below: float, colour_weight: 
             continue
         by.setdefault(r["defect"] or "none (correct assembly)", []).append(r)
     for d, rs in sorted(by.items()):
-        vs = [rejudge(r[key], cfg, flag_below, colour_weight) for r in rs]
+        vs = [rejudge(r[key], cfg, params) for r in rs]
         if d == "none (correct assembly)":
             fa = [sum(x in FLAG for x in v) for v in vs]
             out[d] = dict(n=len(rs), false_alarms_per_image=float(np.mean(fa)),
@@ -180,32 +188,23 @@ def table(rows: list[dict], cfg: PixieConfig, flag_below: float, colour_weight: 
     return out
 
 
-def choose(rows: list[dict], cfg: PixieConfig) -> tuple[float, float]:
-    """(flag_below, colour_weight) with the best mean recall over the part defects among the pairs with <= 0.1 false
-    alarms per correct assembly at the estimated poses (the fitting half); ties to the fewer alarms."""
-    best, key = (GRID[0], 0.0), (-1.0, 0.0)
-    for fb in GRID:
-        for cb in COLOUR_GRID:
-            t = table(rows, cfg, fb, cb)
-            fa = t.get("none (correct assembly)", {}).get("false_alarms_per_image", 0.0)
-            if fa > 0.1:
-                continue
-            rec = float(np.mean([t[d]["recall"] for d in PART_DEFECTS if d in t]))
-            if (rec, -fa) > key:
-                best, key = (fb, cb), (rec, -fa)
-    return best
-
-
-def choose_edges_only(rows: list[dict], cfg: PixieConfig) -> float:
-    """The same rule without the colour cue (colour_weight 0): the ablation row."""
-    best, key = GRID[0], (-1.0, 0.0)
-    for fb in GRID:
-        t = table(rows, cfg, fb, 0.0)
-        fa = t.get("none (correct assembly)", {}).get("false_alarms_per_image", 0.0)
-        if fa <= 0.1:
-            rec = float(np.mean([t[d]["recall"] for d in PART_DEFECTS if d in t]))
-            if (rec, -fa) > key:
-                best, key = fb, (rec, -fa)
+def choose(rows: list[dict], cfg: PixieConfig, colours=COLOUR_GRID, revealed=REVEALED_GRID,
+           shifts=SHIFT_GRID) -> tuple:
+    """(flag_below, colour_weight, revealed_weight, shift_weight) with the best mean recall over the part defects among those with
+    <= 0.1 false alarms per correct assembly at the estimated poses (the fitting half); ties to the fewer alarms,
+    then to the first on the grids (smaller weights)."""
+    best, key = (GRID[0], 0.0, 0.0, 0.0), (-1.0, 0.0)
+    for sw in shifts:
+        for rw in revealed:
+            for cb in colours:
+                for fb in GRID:
+                    t = table(rows, cfg, (fb, cb, rw, sw))
+                    fa = t.get("none (correct assembly)", {}).get("false_alarms_per_image", 0.0)
+                    if fa > 0.1:
+                        continue
+                    rec = float(np.mean([t[d]["recall"] for d in PART_DEFECTS if d in t]))
+                    if (rec, -fa) > key:
+                        best, key = (fb, cb, rw, sw), (rec, -fa)
     return best
 
 
@@ -242,24 +241,30 @@ def main(argv=None) -> int:
         rows = analyse(args.data, ests, cfg, use_mask=args.mask)
     fit = [r for r in rows if r["im_id"] % 2 == 0]
     rep = [r for r in rows if r["im_id"] % 2 == 1]
-    fb, cb = choose(fit, cfg)
+    chosen = choose(fit, cfg)
     pc = cfg.parts
-    res = {"chosen": {"flag_below": fb, "colour_weight": cb},
-           "configured": {"flag_below": pc.flag_below, "colour_weight": pc.colour_weight}, "n_images": len(rows),
-           "estimated_fit_half": table(fit, cfg, fb, cb), "estimated_report_half": table(rep, cfg, fb, cb),
-           "gt_pose_report_half": table(rep, cfg, fb, cb, key="parts_gt"),
-           "estimated_all_configured": table(rows, cfg, pc.flag_below, pc.colour_weight),
-           "gt_pose_all_configured": table(rows, cfg, pc.flag_below, pc.colour_weight, key="parts_gt"),
-           "edges_only_report_half": table(rep, cfg, choose_edges_only(fit, cfg), 0.0)}
+    conf = (pc.flag_below, pc.colour_weight, pc.revealed_weight, pc.shift_weight)
+    ablations = {"session-10 score (support + colour)": choose(fit, cfg, revealed=[0.0], shifts=[0.0]),
+                 "no colour": choose(fit, cfg, colours=[0.0]),
+                 "no contrast with the model without the part": choose(fit, cfg, revealed=[0.0]),
+                 "no shift term": choose(fit, cfg, shifts=[0.0])}
+    names = ("flag_below", "colour_weight", "revealed_weight", "shift_weight")
+    res = {"chosen": dict(zip(names, chosen)), "configured": dict(zip(names, conf)), "n_images": len(rows),
+           "estimated_fit_half": table(fit, cfg, chosen), "estimated_report_half": table(rep, cfg, chosen),
+           "gt_pose_report_half": table(rep, cfg, chosen, key="parts_gt"),
+           "estimated_all_configured": table(rows, cfg, conf),
+           "gt_pose_all_configured": table(rows, cfg, conf, key="parts_gt"),
+           "ablations_report_half": {k: {"params": v, "table": table(rep, cfg, v)} for k, v in ablations.items()}}
     ok = [r for r in rows if "add_mm" in r]
     res["add"] = {"n": len(rows), "add_1cm_before": float(np.mean([r.get("add_mm", 1e9) < 10 for r in rows])),
                   "add_1cm_after_part_realignment": float(np.mean([r.get("add_robust_mm", 1e9) < 10 for r in rows])),
                   "realigned": int(sum(1 for r in ok if r["dropped"])),
                   "median_s_per_image": float(np.median([r["seconds"] for r in ok])) if ok else None}
-    print(f"chosen on the fitting half: flag_below {fb}, colour_weight {cb}")
-    for k in ("estimated_report_half", "gt_pose_report_half", "edges_only_report_half", "estimated_all_configured",
-              "gt_pose_all_configured"):
+    print(f"chosen on the fitting half: flag_below, colour_weight, revealed_weight, shift_weight = {chosen}")
+    for k in ("estimated_report_half", "gt_pose_report_half", "estimated_all_configured", "gt_pose_all_configured"):
         print(f"\n{k}\n{fmt(res[k])}")
+    for k, v in res["ablations_report_half"].items():
+        print(f"\nablation, report half: {k}, chosen on the fitting half by the same rule: {v['params']}\n{fmt(v['table'])}")
     print("\n", json.dumps(res["add"]))
     args.out.write_text(json.dumps({**res, "rows": rows}, indent=1, default=float))
     print(f"wrote {args.out}")

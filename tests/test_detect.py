@@ -113,3 +113,39 @@ def test_cli_detect_writes_found_false_and_exits_0(query_est, proc_mesh, scene_p
     code, _, err = run_cli("estimate", "--refs", str(refs), "--image", str(tmp_path / "photo.png"), "--K", K_ARG,
                            "--detect", "--bbox", "1,1,5,5")
     assert code == 2 and "drop --bbox" in err
+
+
+def two_copies(proc_mesh, parts, seed: int):
+    """640 x 480: two copies of the part side by side (different rotations and distances), one box distractor
+    between them, a cluttered background."""
+    ren, box = parts
+    rng = np.random.default_rng(100 + seed)
+    Ts = []
+    for side in (-1.0, 1.0):
+        T = pose_facing(proc_mesh, rng, 3.8 + rng.uniform(0, 1.2), 0.0, K)
+        T[0, 3] += side * 0.33 * T[2, 3]  # ~200 px left / right of the centre
+        Ts.append(T)
+    d = make_T(cv2.Rodrigues(rng.normal(size=3))[0], np.array([0.0, 0.3, 1.0]) * Ts[0][2, 3] * 1.1)
+    rens, poses = [ren, ren, box], Ts + [d]
+    ph = render_rgb(rens, poses, K, 480, 640, [Material.random(rng) for _ in rens], rng,
+                    background=random_background(480, 640, rng), shadows=False)
+    return ph.rgb, Ts
+
+
+def test_two_instances_give_two_poses(query_est, proc_mesh, scene_parts, line2d_cache):
+    """Several instances: each round fills in the instances found so far and searches the photo again. Measured on
+    these 5 seeds (session 11): both copies found in 3 (the second copy's pose 3.8–11.9° off), one in the other two
+    (the second copy proposed, its pose rejected at confidence 0.38 / 0.43); 8 of the 10 copies within 15° / 10 %.
+    Asserted with one scene of margin."""
+    kw = dict(top_k=2, max_instances=2, distance_mm=distance(proc_mesh), cache_dir=line2d_cache / "pixie" / "line2d")
+    both, right = 0, 0
+    for seed in range(5):
+        img, Ts = two_copies(proc_mesh, scene_parts, seed)
+        fr = find_objects(query_est, img, K, **kw)
+        good = 0
+        for T in Ts:
+            good += any(rotation_angle_deg(r.T_cam_from_obj[:3, :3], T[:3, :3]) < 15.0
+                        and abs(r.T_cam_from_obj[2, 3] / T[2, 3] - 1) < 0.1 for r in fr.poses)
+        both += len(fr.poses) == 2
+        right += good
+    assert both >= 2 and right >= 7, (both, right)

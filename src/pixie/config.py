@@ -371,8 +371,9 @@ RANGES.update({"align.min_contrast": (0, 1, True), "align.w_box": (0, None, True
 @dataclass
 class PartsConfig(_Section):
     """The part report (pixie.cues.parts): each part's support at the final pose and a verdict, for meshes with parts
-    (a GLB's sub-meshes, or connected components). flag_below and colour_weight were chosen on the fitting
-    half of the 336-photo defects benchmark by bench/defects_parts.py's rule (bench/RESULTS.md "Part verdicts")."""
+    (a GLB's sub-meshes, or connected components). flag_below, colour_weight, revealed_weight and shift_weight were
+    chosen on the fitting half of the 336-photo defects benchmark by bench/defects_parts.py's rule (bench/RESULTS.md
+    "Part verdicts", session 11)."""
 
     enabled: bool = True  # report parts when the mesh has them (median 0.4 s per photo on the defects benchmark)
     robust: bool = True  # re-align without the parts judged missing / displaced, then judge again (pixie.cues.parts)
@@ -383,7 +384,11 @@ class PartsConfig(_Section):
     min_points: int = 12  # fewer visible contour pixels: 'not visible'
     min_visible: float = 0.2  # less of the part in view (hidden by other parts, outside the box / mask): 'not visible'
     flag_below: float = 0.0  # a part whose score (below) is under this is flagged ('missing' ...
-    colour_weight: float = 2.0  # score = relative edge support + this x (relative paint consistency, at most 1, - 1)
+    colour_weight: float = 1.0  # score = relative edge support + this x (relative paint consistency, at most 1, - 1)
+    # ... - this x the relative support of the contour its absence would reveal (pixie.cues.parts: the edges of what
+    # is behind it); with revealed_weight > 0 the edge support is the part's exclusive contour's (what only it explains)
+    revealed_weight: float = 1.0
+    shift_weight: float = 0.0  # ... - this x the relative support a slide of its contour gains (displaced parts)
     colour_ab: float = 12.0  # chroma distance (CIELAB a*, b*) of "the same paint"
     supported_above: float = 1.0  # ... but never a part whose relative edge support is at least this (colour alone)
     shift_gain: float = 0.4  # ... 'displaced' when a shift raises its support by this (relative to the median)
@@ -396,7 +401,8 @@ CHOICES["parts.kinds"] = PART_KINDS
 RANGES.update({"parts.fit_px": (0, 100, False), "parts.shift_frac": (0, 1, True), "parts.min_points": (1, None, True),
                "parts.min_visible": (0, 1, True), "parts.flag_below": (-10, 10, True), "parts.shift_gain": (0, None, True),
                "parts.found_shifted": (0, None, True), "parts.colour_weight": (0, 100, True), "parts.supported_above": (0, 100, True),
-               "parts.colour_ab": (0, 300, False), "parts.step_frac": (0, 1, True)})
+               "parts.colour_ab": (0, 300, False), "parts.step_frac": (0, 1, True),
+               "parts.revealed_weight": (0, 100, True), "parts.shift_weight": (0, 100, True)})
 
 
 @dataclass

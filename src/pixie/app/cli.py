@@ -296,8 +296,9 @@ def part_report_text(res) -> str:
     lines = [head]
     for p in rows:
         extra = f", best shifted {p['shifted_support']:.2f} at {p['shift_px']:.0f} px" if p["verdict"] == "displaced" else ""
+        hidden = (f", behind it {p['revealed_support']:.2f}" if p.get("n_revealed", 0) else "")
         lines.append(f"  {p['name']:<28s} {p['verdict']:<11s} support {p['support']:.2f} "
-                     f"(x{p['relative']:.2f} of the median part), {100 * p['visible']:.0f} % visible{extra}")
+                     f"(x{p['relative']:.2f} of the median part){hidden}, {100 * p['visible']:.0f} % visible{extra}")
     return "\n".join(lines)
 
 

@@ -14,6 +14,11 @@ Per part (:class:`PartSupport`):
 - ``shifted`` / ``shift_px``: the best support when the part's contour is slid in the image by up to
   ``shift_frac`` of the box (a displaced part's edges are nearby, a missing part's are nowhere);
 - ``visible``: its visible pixels / its pixels when rendered alone (hidden by other parts or outside the box / mask);
+- ``exclusive`` / ``revealed``: the model is also rendered *without* the part. ``exclusive`` is the support of the
+  part's contour pixels that this render lacks (what only the part explains: not the lower brick's outline it sits
+  on), ``revealed`` the support of the contour pixels this render has and the whole model's lacks (the edges of what
+  the part hides). A missing part has the second and not the first; a part hidden by an occluder, or painted like
+  its surroundings, has neither (its low support is no evidence of absence);
 - ``colour``: the share of its visible inner pixels whose chroma (CIELAB a*, b*) lies within ``colour_ab`` of their
   median: one paint gives ~1 whatever the shading, a region that shows a moved part and what it uncovered gives less
   (for uniformly painted parts; ``colour_weight`` 0 turns the cue off).
@@ -42,7 +47,8 @@ from pixie.geometry.render import RenderResult, Renderer
 from pixie.pose.results import SUSPECT_VERDICTS
 from pixie.references.templates import edge_map
 
-__all__ = ["VERDICTS", "PartSupport", "report_kwargs", "part_contours", "part_renderers", "part_support", "part_score",
+__all__ = ["VERDICTS", "PartSupport", "report_kwargs", "part_contours", "part_renderers", "complement_renderers",
+           "part_support", "part_score",
            "judge_parts", "robust_part_fit"]
 
 VERDICTS = ("present", "missing", "displaced", "not visible")
@@ -62,6 +68,11 @@ class PartSupport:
     visible: float
     n_points: int
     colour: float = 1.0
+    exclusive: float = 0.0  # support of its contour pixels that the model without it does not have
+    n_exclusive: int = 0
+    revealed: float = 0.0  # support of the contour pixels the model without it has and the whole model does not
+    n_revealed: int = 0
+    exclusive_shifted: float = 0.0  # the exclusive contour's best support when slid (the shift search)
     verdict: str = ""
     uv: np.ndarray = field(default_factory=lambda: np.zeros((0, 2)), repr=False)  # its contour points, photo px
     hit: np.ndarray = field(default_factory=lambda: np.zeros(0, bool), repr=False)  # ... and which are supported
@@ -71,14 +82,19 @@ class PartSupport:
         return {"index": self.index, "name": self.name, "verdict": self.verdict,
                 "support": round(self.support, 4), "relative": round(self.relative, 4),
                 "shifted_support": round(self.shifted, 4), "shift_px": round(self.shift_px, 2),
-                "visible": round(self.visible, 4), "n_points": self.n_points, "colour": round(self.colour, 4)}
+                "visible": round(self.visible, 4), "n_points": self.n_points, "colour": round(self.colour, 4),
+                "exclusive_support": round(self.exclusive, 4), "n_exclusive": self.n_exclusive,
+                "revealed_support": round(self.revealed, 4), "n_revealed": self.n_revealed,
+                "exclusive_shifted_support": round(self.exclusive_shifted, 4)}
 
 
 def report_kwargs(pc: PartsConfig) -> tuple[dict, dict]:
     """The keywords of :func:`part_support` and of :func:`judge_parts` that ``config.parts`` sets."""
     support = dict(fit_px=pc.fit_px, shift_frac=pc.shift_frac, min_points=pc.min_points, colour_ab=pc.colour_ab,
                    step_frac=pc.step_frac, kinds=tuple(PART_KINDS.index(k) for k in pc.kinds))
-    judge = dict(flag_below=pc.flag_below, colour_weight=pc.colour_weight, supported_above=pc.supported_above,
+    judge = dict(flag_below=pc.flag_below, colour_weight=pc.colour_weight, revealed_weight=pc.revealed_weight,
+                 shift_weight=pc.shift_weight,
+                 supported_above=pc.supported_above,
                  shift_gain=pc.shift_gain, found_shifted=pc.found_shifted, min_points=pc.min_points,
                  min_visible=pc.min_visible)
     return support, judge
@@ -94,6 +110,46 @@ def part_renderers(mesh: Mesh) -> list[Renderer]:
         sub = from_arrays(mesh.vertices, mesh.faces[sel] if sel.any() else mesh.faces[:1], name=f"{mesh.name}:{k}")
         out.append(Renderer(sub, smooth_normals=False))
     return out
+
+
+def complement_renderers(mesh: Mesh, smooth_normals: bool = True) -> list[tuple[Renderer, np.ndarray]]:
+    """Per part of ``mesh``: a renderer of the mesh *without* that part and the remaining faces' part indices (what
+    the photo would show if the part were absent; for :func:`part_support`'s exclusive and revealed contours)."""
+    if mesh.face_parts is None:
+        return []
+    out = []
+    for k in range(mesh.n_parts):
+        sel = mesh.face_parts != k
+        if not sel.any():
+            sel = np.zeros(len(mesh.faces), bool)
+            sel[0] = True
+        sub = from_arrays(mesh.vertices, mesh.faces[sel], name=f"{mesh.name}:without{k}")
+        out.append((Renderer(sub, smooth_normals=smooth_normals), np.asarray(mesh.face_parts)[sel]))
+    return out
+
+
+def _near_maps(xy: np.ndarray, ori: np.ndarray, shape: tuple[int, int], n_bins: int = 8) -> np.ndarray:
+    """(n_bins, H, W) bool: a contour pixel of orientation bin b (or b ± 1) lies within 1 px (3 x 3)."""
+    maps = np.zeros((n_bins,) + tuple(shape), np.uint8)
+    if len(xy):
+        b = np.floor(np.mod(ori, np.pi) / np.pi * n_bins).astype(int) % n_bins
+        x = np.clip(np.rint(xy[:, 0]).astype(int), 0, shape[1] - 1)
+        y = np.clip(np.rint(xy[:, 1]).astype(int), 0, shape[0] - 1)
+        maps[b, y, x] = 1
+    k3 = np.ones((3, 3), np.uint8)
+    dil = np.stack([cv2.dilate(m, k3) for m in maps]).astype(bool)
+    return dil | np.roll(dil, 1, axis=0) | np.roll(dil, -1, axis=0)
+
+
+def _explained(xy: np.ndarray, ori: np.ndarray, near: np.ndarray) -> np.ndarray:
+    """Which contour pixels (xy, ori) another contour (its :func:`_near_maps`) also has."""
+    n_bins, H, W = near.shape
+    if not len(xy):
+        return np.zeros(0, bool)
+    b = np.floor(np.mod(ori, np.pi) / np.pi * n_bins).astype(int) % n_bins
+    x = np.clip(np.rint(xy[:, 0]).astype(int), 0, W - 1)
+    y = np.clip(np.rint(xy[:, 1]).astype(int), 0, H - 1)
+    return near[b, y, x]
 
 
 def part_contours(r: RenderResult, face_parts: np.ndarray, crease_deg: float = 35.0, depth_jump: float = 0.01,
@@ -166,10 +222,24 @@ def _shift_grid(reach: float, step: float) -> np.ndarray:
     return s[(n >= 2.0) & (n <= reach)]
 
 
+def _slide(pe: PhotoEdges, xy: np.ndarray, ori: np.ndarray, sel: np.ndarray, shifts: np.ndarray, max_points: int,
+           max_bin_gap: int, fit_px: float) -> tuple[float, int]:
+    """The best support of the contour pixels ``sel`` slid by one of ``shifts`` (at most ``max_points`` of them,
+    evenly spaced), and that shift's index."""
+    idx = np.flatnonzero(sel)
+    idx = idx[np.linspace(0, len(idx) - 1, min(len(idx), max_points)).astype(int)]
+    q = (xy[idx][None, :, :] + shifts[:, None, :]).reshape(-1, 2)
+    dq, _ = edge_distances(pe, q, np.tile(ori[idx], len(shifts)), max_bin_gap, fit_px)
+    sup = (dq.reshape(len(shifts), len(idx)) <= fit_px).mean(axis=1)
+    j = int(np.argmax(sup))
+    return float(sup[j]), j
+
+
 def part_support(renderer: Renderer, face_parts: np.ndarray, part_names, pe: PhotoEdges, T: np.ndarray, *,
                  fit_px: float = 1.5, max_bin_gap: int = 1, shift_frac: float = 0.12, shift_step: float = 2.0,
                  renderers: list[Renderer] | None = None, min_points: int = 12, kinds=(0, 1, 2),
-                 max_points: int = 240, step_frac: float = 0.0, colour_ab: float = 12.0) -> list[PartSupport]:
+                 max_points: int = 240, step_frac: float = 0.0, colour_ab: float = 12.0,
+                 complements: list[tuple[Renderer, np.ndarray]] | None = None) -> list[PartSupport]:
     """Every part's support at pose ``T`` (verdicts not yet set: :func:`judge_parts`).
 
     Parameters
@@ -186,17 +256,23 @@ def part_support(renderer: Renderer, face_parts: np.ndarray, part_names, pe: Pho
     max_points : at most this many of a part's pixels (evenly spaced in raster order) enter the shift search
     step_frac : a depth step counts when it is deeper than this share of the mesh's diameter (:func:`part_contours`)
     colour_ab : chroma distance (CIELAB a*, b* units) within which a pixel has the part's paint
+    complements : :func:`complement_renderers` of the mesh (made here when None): the model without each part, for
+        the exclusive contour (what only the part explains) and the revealed one (what its absence would show)
     """
     face_parts = np.asarray(face_parts)
     n_parts = len(part_names)
     r = renderer.render(T, pe.K, pe.size, pe.size)
     xy, ori, part, part_map, kind = part_contours(r, face_parts, step_mm=step_frac * renderer.mesh.diameter)
+    step_mm = step_frac * renderer.mesh.diameter
     keep = np.isin(kind, np.asarray(kinds))
     xy, ori, part = xy[keep], ori[keep], part[keep]
     d, inside = edge_distances(pe, xy, ori, max_bin_gap, fit_px) if len(xy) else (np.zeros(0), np.zeros(0, bool))
     hit = d <= fit_px
-    renderers = renderers if renderers is not None else part_renderers(
-        replace(renderer.mesh, face_parts=face_parts, part_names=tuple(part_names)))
+    whole = replace(renderer.mesh, face_parts=face_parts, part_names=tuple(part_names))
+    renderers = renderers if renderers is not None else part_renderers(whole)
+    complements = complements if complements is not None else complement_renderers(
+        whole, smooth_normals=renderer.smooth_normals)
+    near_all = _near_maps(xy, ori, part_map.shape)
     lab = cv2.cvtColor(np.ascontiguousarray(pe.crop.image), cv2.COLOR_RGB2LAB).astype(np.float32)
     box_side = float(max(pe.box[2] - pe.box[0], pe.box[3] - pe.box[1]))
     shifts = _shift_grid(max(shift_frac * box_side, 2.0), shift_step)
@@ -211,21 +287,36 @@ def part_support(renderer: Renderer, face_parts: np.ndarray, part_names, pe: Pho
         support = float(hit[own].mean()) if n else 0.0
         best, best_shift = support, 0.0
         if n >= min_points and len(shifts):
-            idx = np.flatnonzero(own)
-            idx = idx[np.linspace(0, len(idx) - 1, min(len(idx), max_points)).astype(int)]
-            q = (xy[idx][None, :, :] + shifts[:, None, :]).reshape(-1, 2)
-            dq, _ = edge_distances(pe, q, np.tile(ori[idx], len(shifts)), max_bin_gap, fit_px)
-            sup = (dq.reshape(len(shifts), len(idx)) <= fit_px).mean(axis=1)
-            j = int(np.argmax(sup))
-            if sup[j] > best:
-                best, best_shift = float(sup[j]), float(np.linalg.norm(shifts[j]) * pe.scale)
+            sup, j = _slide(pe, xy, ori, own, shifts, max_points, max_bin_gap, fit_px)
+            if sup > best:
+                best, best_shift = sup, float(np.linalg.norm(shifts[j]) * pe.scale)
         inner = (cv2.erode((part_map == k).astype(np.uint8), np.ones((3, 3), np.uint8)) > 0) & allowed
         colour = 1.0
         if inner.sum() >= 20:
             ab = lab[inner][:, 1:]
             colour = float(np.mean(np.linalg.norm(ab - np.median(ab, axis=0), axis=1) < colour_ab))
+        excl, n_excl, rev, n_rev, excl_shifted = 0.0, 0, 0.0, 0, 0.0
+        if k < len(complements) and visible_px:
+            cr, cparts = complements[k]
+            rw = cr.render(T, pe.K, pe.size, pe.size)
+            wxy, wori, _, _, wkind = part_contours(rw, cparts, step_mm=step_mm)
+            wk = np.isin(wkind, np.asarray(kinds))
+            wxy, wori = wxy[wk], wori[wk]
+            mine = inside & ~_explained(xy, ori, _near_maps(wxy, wori, part_map.shape))
+            n_excl = int(mine.sum())
+            excl = float(hit[mine].mean()) if n_excl else 0.0
+            excl_shifted = excl
+            if n_excl >= min_points and len(shifts):
+                excl_shifted = max(excl, _slide(pe, xy, ori, mine, shifts, max_points, max_bin_gap, fit_px)[0])
+            new_px = ~_explained(wxy, wori, near_all)
+            if new_px.any():
+                dw, win = edge_distances(pe, wxy[new_px], wori[new_px], max_bin_gap, fit_px)
+                n_rev = int(win.sum())
+                rev = float((dw[win] <= fit_px).mean()) if n_rev else 0.0
         out.append(PartSupport(index=k, name=str(part_names[k]), support=support, relative=0.0, shifted=best,
                                shift_px=best_shift, visible=visible, n_points=n, colour=colour,
+                               exclusive=excl, n_exclusive=n_excl, revealed=rev, n_revealed=n_rev,
+                               exclusive_shifted=excl_shifted,
                                uv=pe.to_photo(xy[own]) if n else np.zeros((0, 2)), hit=hit[own]))
     judged = [p.support for p in out if p.n_points >= min_points]
     med = float(np.median(judged)) if judged else 0.0
@@ -234,25 +325,51 @@ def part_support(renderer: Renderer, face_parts: np.ndarray, part_names, pe: Pho
     return out
 
 
-def part_score(p: PartSupport, colour_weight: float = 0.0, colour_median: float = 1.0) -> float:
-    """The evidence that a part is where the model has it: relative support + ``colour_weight`` x (min(colour
-    consistency / the median part's, 1) - 1); about 1 for a present part, lower the less the photo agrees. Relative
-    like the support, so a photo where no part looks uniformly painted (texture, a single grey) flags none."""
+def part_score(p: PartSupport, colour_weight: float = 0.0, colour_median: float = 1.0, revealed_weight: float = 0.0,
+               median: float | None = None, min_points: int = 12, shift_weight: float = 0.0) -> float:
+    """The evidence that a part is where the model has it; about 1 for a present part, lower the less the photo agrees.
+
+    Without ``revealed_weight``: its relative edge support + ``colour_weight`` x (min(colour consistency / the median
+    part's, 1) - 1). With it, the edge term is a likelihood-ratio-like contrast of the model with and without the
+    part: the relative support of its *exclusive* contour (pixels the model without it lacks; its whole contour when
+    fewer than ``min_points``) minus ``revealed_weight`` x the relative support of the contour its absence would
+    reveal (what is behind it). A part hidden by an occluder or painted like its surroundings has neither and is not
+    flagged on edges; a missing one has the second. Relative (to ``median``, the median judged part's support;
+    ``p.relative``'s when None), so a photo's edge quality cancels, and a photo where no part looks uniformly
+    painted flags none on colour. ``shift_weight`` x the relative support a slide of its contour gains (the shift
+    search: a displaced part's edges lie nearby; of the exclusive contour when ``revealed_weight`` is set) is
+    subtracted too."""
     rel_colour = min(p.colour / colour_median, 1.0) if colour_median > 0 else 1.0
-    return p.relative + colour_weight * (rel_colour - 1.0)
+    if revealed_weight <= 0:
+        edge = p.relative if median is None else (p.support / median if median > 0 else 0.0)
+    else:
+        med = median if median is not None else (p.support / p.relative if p.relative > 0 else 0.0)
+        if med <= 0:
+            edge = 0.0
+        else:
+            own = p.exclusive if p.n_exclusive >= min_points else p.support
+            edge = own / med - revealed_weight * (p.revealed / med if p.n_revealed >= min_points else 0.0)
+    if shift_weight > 0:
+        med = median if median is not None else (p.support / p.relative if p.relative > 0 else 0.0)
+        gain = (p.exclusive_shifted - p.exclusive if revealed_weight > 0 and p.n_exclusive >= min_points
+                else p.shifted - p.support)
+        edge -= shift_weight * (max(gain, 0.0) / med if med > 0 else 0.0)
+    return edge + colour_weight * (rel_colour - 1.0)
 
 
 def judge_parts(parts: list[PartSupport], *, flag_below: float = 0.6, colour_weight: float = 0.0,
-                supported_above: float = 1.0, shift_gain: float = 0.4, found_shifted: float = 0.97,
-                min_points: int = 12, min_visible: float = 0.2) -> list[PartSupport]:
+                revealed_weight: float = 0.0, shift_weight: float = 0.0, supported_above: float = 1.0,
+                shift_gain: float = 0.4,
+                found_shifted: float = 0.97, min_points: int = 12, min_visible: float = 0.2) -> list[PartSupport]:
     """Set each part's verdict (in place; returns ``parts``); supports are relative to the median judged part.
 
     ``not visible``: fewer than ``min_points`` visible contour pixels or less than ``min_visible`` of it in view.
-    Otherwise a part is flagged when its :func:`part_score` (relative edge support, lowered by
-    ``colour_weight`` x its paint inconsistency relative to the median part's) is below ``flag_below`` and its
-    relative edge support below ``supported_above`` (colour alone never flags a well-supported contour):
-    ``displaced`` when a shift finds it (shifted support >= ``found_shifted`` of the median and >= ``shift_gain``
-    above its own), else ``missing``. The others are ``present``. On repetitive assemblies (LEGO studs) a shift also finds a neighbour's edges, hence the
+    Otherwise a part is flagged when its :func:`part_score` (relative edge support, or with ``revealed_weight`` its
+    exclusive contour's against what its absence would reveal, lowered by ``colour_weight`` x its paint
+    inconsistency relative to the median part's) is below ``flag_below`` and its relative edge support below
+    ``supported_above`` (colour alone never flags a well-supported contour): ``displaced`` when a shift finds it
+    (shifted support >= ``found_shifted`` of the median and >= ``shift_gain`` above its own), else ``missing``. The
+    others are ``present``. On repetitive assemblies (LEGO studs) a shift also finds a neighbour's edges, hence the
     strict ``found_shifted``.
     """
     judged = [p for p in parts if p.n_points >= min_points and p.visible >= min_visible]
@@ -261,7 +378,8 @@ def judge_parts(parts: list[PartSupport], *, flag_below: float = 0.6, colour_wei
     for p in parts:
         if p.n_points < min_points or p.visible < min_visible or med <= 0:
             p.verdict = "not visible"
-        elif part_score(p, colour_weight, med_colour) >= flag_below or p.relative >= supported_above:
+        elif (part_score(p, colour_weight, med_colour, revealed_weight, med, min_points, shift_weight) >= flag_below
+              or p.support / med >= supported_above):
             p.verdict = "present"
         elif p.shifted / med >= found_shifted and (p.shifted - p.support) / med >= shift_gain:
             p.verdict = "displaced"
@@ -272,7 +390,9 @@ def judge_parts(parts: list[PartSupport], *, flag_below: float = 0.6, colour_wei
 
 def robust_part_fit(renderer: Renderer, face_parts: np.ndarray, part_names, pe: PhotoEdges, T: np.ndarray, *,
                     align_kw: dict, support_kw: dict | None = None, judge_kw: dict | None = None,
-                    renderers: list[Renderer] | None = None) -> tuple[np.ndarray, list[PartSupport], list[int]]:
+                    renderers: list[Renderer] | None = None,
+                    complements: list[tuple[Renderer, np.ndarray]] | None = None,
+                    ) -> tuple[np.ndarray, list[PartSupport], list[int]]:
     """The pose re-aligned without the parts the photo does not support, and the part report at it.
 
     The parts judged missing or displaced at ``T`` (:func:`part_support`, :func:`judge_parts`) are left out of a
@@ -285,15 +405,19 @@ def robust_part_fit(renderer: Renderer, face_parts: np.ndarray, part_names, pe: 
     (pose, parts, dropped part indices); the pose is ``T`` when nothing was flagged or the re-alignment was not kept.
     """
     support_kw, judge_kw = dict(support_kw or {}), dict(judge_kw or {})
-    renderers = renderers if renderers is not None else part_renderers(
-        replace(renderer.mesh, face_parts=np.asarray(face_parts), part_names=tuple(part_names)))
-    ps = judge_parts(part_support(renderer, face_parts, part_names, pe, T, renderers=renderers, **support_kw),
+    whole = replace(renderer.mesh, face_parts=np.asarray(face_parts), part_names=tuple(part_names))
+    renderers = renderers if renderers is not None else part_renderers(whole)
+    complements = complements if complements is not None else complement_renderers(
+        whole, smooth_normals=renderer.smooth_normals)
+    ps = judge_parts(part_support(renderer, face_parts, part_names, pe, T, renderers=renderers,
+                                  complements=complements, **support_kw),
                      **judge_kw)
     drop = [p.index for p in ps if p.verdict in SUSPECT_VERDICTS]
     if not drop or len(drop) >= sum(p.verdict != "not visible" for p in ps):
         return np.asarray(T, np.float64), ps, []
     res = align(renderer, pe, T, face_parts=face_parts, drop_parts=drop, **align_kw)
     ps2 = judge_parts(part_support(renderer, face_parts, part_names, pe, res.T_cam_from_obj, renderers=renderers,
+                                   complements=complements,
                                    **support_kw), **judge_kw)
 
     def kept_median(parts: list[PartSupport]) -> float:

@@ -69,7 +69,8 @@ from pixie.cues.refine import aligned_correspondences, render_in_crop
 from pixie.geometry.render import Renderer
 from pixie.cues.edge_align import align, edge_fit, flip_twins, photo_edges
 from pixie.cues.edges import EdgeQuery
-from pixie.cues.parts import judge_parts, part_renderers, part_support, report_kwargs, robust_part_fit
+from pixie.cues.parts import (complement_renderers, judge_parts, part_renderers, part_support, report_kwargs,
+                              robust_part_fit)
 from pixie.cues.shape import fused_score, shape_cues
 from pixie.pose.results import NO_BOX_MESSAGE, Hypothesis, PoseResult, set_confidences
 from pixie.references.views import roll_angles
@@ -184,6 +185,7 @@ class PoseEstimator:
                           if self.cfg.refine.render_iters > 0 else None)
         self._align_renderer = Renderer(refs.mesh, smooth_normals=True) if self.cfg.align.enabled else None
         self._part_renderers: list[Renderer] | None = None  # per part of the mesh, made on the first part report
+        self._part_complements: list | None = None  # the mesh without each part (cues.parts.complement_renderers)
         self._shape = None
         if self.cfg.shape.enabled:
             self._shape = shape_cues(refs, self.cfg.shape)
@@ -261,19 +263,21 @@ class PoseEstimator:
         ren, _, align_kw = self._align_setup(q, photo=False)  # the alignment's photo edges when it ran
         if self._part_renderers is None:
             self._part_renderers = part_renderers(mesh)
+            self._part_complements = complement_renderers(mesh, smooth_normals=ren.smooth_normals)
         support_kw, judge_kw = report_kwargs(pc)
         if pc.robust:
             if q.box_source == "prior":  # a grown search region, not the object's sides
                 align_kw["w_box"] = 0.0
             T, ps, dropped = robust_part_fit(ren, mesh.face_parts, mesh.part_names, q.photo_edges, res.T_cam_from_obj,
                                              align_kw=align_kw, support_kw=support_kw, judge_kw=judge_kw,
-                                             renderers=self._part_renderers)
+                                             renderers=self._part_renderers, complements=self._part_complements)
             if dropped:
                 res.T_cam_from_obj = T
                 res.settings["parts_realigned_without"] = [mesh.part_names[k] for k in dropped]
         else:
             ps = judge_parts(part_support(ren, mesh.face_parts, mesh.part_names, q.photo_edges, res.T_cam_from_obj,
-                                          renderers=self._part_renderers, **support_kw), **judge_kw)
+                                          renderers=self._part_renderers, complements=self._part_complements,
+                                          **support_kw), **judge_kw)
         res.part_support, res.parts = ps, [p.as_dict() for p in ps]
         res.timings["parts"] = time.perf_counter() - t
         return res

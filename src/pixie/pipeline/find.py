@@ -18,10 +18,12 @@ import time
 from dataclasses import dataclass, field
 from typing import Callable
 
+import cv2
 import numpy as np
 
 from pixie.cues.detect import Proposal, TemplateDetector
 from pixie.errors import PixieError
+from pixie.geometry.render import Renderer
 from pixie.pose.results import PoseResult
 from pixie.pose.solve import box_iou, projected_box
 from pixie.references.templates import ContourTemplates
@@ -59,38 +61,79 @@ def detector_for(est, K: np.ndarray, **kw) -> TemplateDetector:
     return cache[key]
 
 
+def _instance_mask(est, T: np.ndarray, K: np.ndarray, shape: tuple[int, int], grow_px: int = 4) -> np.ndarray:
+    """The image pixels of the object at pose ``T``, grown by ``grow_px`` (what one found instance covers)."""
+    ren = est.__dict__.get("_find_renderer")
+    if ren is None:
+        ren = est.__dict__.setdefault("_find_renderer", Renderer(est.refs.mesh, smooth_normals=False))
+    m = ren.render(T, np.asarray(K, np.float64), shape[0], shape[1]).mask.astype(np.uint8)
+    return cv2.dilate(m, np.ones((2 * grow_px + 1, 2 * grow_px + 1), np.uint8)) > 0
+
+
+def _without(image: np.ndarray, mask: np.ndarray) -> np.ndarray:
+    """``image`` with the ``mask`` region filled from its surroundings (``cv2.inpaint``): found instances no longer
+    draw the next search, and the fill adds no contour of its own."""
+    return cv2.inpaint(np.ascontiguousarray(image), mask.astype(np.uint8), 5, cv2.INPAINT_TELEA)
+
+
 def find_objects(est, image: np.ndarray, K: np.ndarray, top_k: int = 3, max_instances: int = 1,
                  min_confidence: float = 0.5, min_box_iou: float = 0.5,
                  progress: Callable[[str], None] | None = None, **detector_kw) -> FindResult:
-    """Propose, estimate each of the ``top_k`` proposals, keep the supported poses (see the module docstring)."""
+    """Propose, estimate each of the ``top_k`` proposals, keep the supported poses (see the module docstring).
+
+    With ``max_instances`` > 1 the search is repeated: the photo's pixels covered by the instances found so far
+    (their rendered masks, grown by 4 px) are filled in from their surroundings, the filled photo is searched again
+    and its new proposals are estimated on the original photo, until ``max_instances`` are found or a round finds
+    none (a copy's proposals would otherwise all sit on the first instance's parts)."""
     t0 = time.perf_counter()
-    det = detector_for(est, np.asarray(K, np.float64), **detector_kw)
+    K = np.asarray(K, np.float64)
+    det = detector_for(est, K, **detector_kw)
     t_build = time.perf_counter() - t0
-    props = det.propose(image, top_k=top_k)
-    t_propose = time.perf_counter() - t0 - t_build
+    n_max = max(int(max_instances), 1)
     kept: list[tuple[PoseResult, np.ndarray]] = []
+    props_all: list[Proposal] = []
     verdicts: list[str] = []
-    for i, p in enumerate(props):
-        if progress is not None:
-            progress(f"proposal {i + 1}/{len(props)}")
-        res = est.estimate(image, K, bbox=p.box_xywh)
-        if res.T_cam_from_obj is None or res.failed:
-            verdicts.append(f"rejected: {res.message or 'no pose'}")
-            continue
-        pb = projected_box(res.T_cam_from_obj, K, est.box_points)
-        iou = box_iou(pb, p.box_xyxy)
-        if res.confidence < min_confidence:
-            verdicts.append(f"rejected: confidence {res.confidence:.2f} < {min_confidence:.2f}")
-        elif iou < min_box_iou:
-            verdicts.append(f"rejected: the pose's box overlaps the proposal by IoU {iou:.2f} < {min_box_iou:.2f}")
-        elif (j := next((j for j, (_, q) in enumerate(kept) if box_iou(pb, q) >= 0.5), None)) is not None:
-            verdicts.append("duplicate")
-            if res.confidence > kept[j][0].confidence:
-                kept[j] = (res, pb)
-        else:
-            verdicts.append("kept")
-            kept.append((res, pb))
+    t_propose = 0.0
+    search, covered = image, np.zeros(image.shape[:2], bool)
+    for _round in range(n_max):
+        t = time.perf_counter()
+        props = [p for p in det.propose(search, top_k=top_k)
+                 if not any(box_iou(p.box_xyxy, q) >= 0.5 for _, q in kept)]
+        t_propose += time.perf_counter() - t
+        n_before = len(kept)
+        for p in props:
+            if progress is not None:
+                progress(f"proposal {len(props_all) + 1}")
+            props_all.append(p)
+            verdicts.append(_verify(est, image, K, p, kept, min_confidence, min_box_iou))
+        if len(kept) >= n_max or len(kept) == n_before:
+            break
+        for res, _ in kept[n_before:]:
+            covered |= _instance_mask(est, res.T_cam_from_obj, K, image.shape[:2])
+        search = _without(image, covered)
     kept.sort(key=lambda rp: -rp[0].confidence)
-    poses = [r for r, _ in kept[:max(int(max_instances), 1)]]
-    return FindResult(found=bool(poses), poses=poses, proposals=props, verdicts=verdicts,
+    poses = [r for r, _ in kept[:n_max]]
+    return FindResult(found=bool(poses), poses=poses, proposals=props_all, verdicts=verdicts,
                       timings={"templates": t_build, "propose": t_propose, "total": time.perf_counter() - t0})
+
+
+def _verify(est, image: np.ndarray, K: np.ndarray, p: Proposal, kept: list, min_confidence: float,
+            min_box_iou: float) -> str:
+    """Estimate proposal ``p``; a supported pose joins ``kept`` (or replaces a less confident duplicate). Returns the
+    proposal's verdict."""
+    res = est.estimate(image, K, bbox=p.box_xywh)
+    if res.T_cam_from_obj is None or res.failed:
+        return f"rejected: {res.message or 'no pose'}"
+    pb = projected_box(res.T_cam_from_obj, K, est.box_points)
+    iou = box_iou(pb, p.box_xyxy)
+    if res.confidence < min_confidence:
+        return f"rejected: confidence {res.confidence:.2f} < {min_confidence:.2f}"
+    if iou < min_box_iou:
+        return f"rejected: the pose's box overlaps the proposal by IoU {iou:.2f} < {min_box_iou:.2f}"
+    j = next((j for j, (_, q) in enumerate(kept) if box_iou(pb, q) >= 0.5), None)
+    if j is not None:
+        if res.confidence > kept[j][0].confidence:
+            kept[j] = (res, pb)
+        return "duplicate"
+    kept.append((res, pb))
+    return "kept"
