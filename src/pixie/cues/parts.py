@@ -48,8 +48,7 @@ from pixie.pose.results import SUSPECT_VERDICTS
 from pixie.references.templates import edge_map
 
 __all__ = ["VERDICTS", "PartSupport", "report_kwargs", "part_contours", "part_renderers", "complement_renderers",
-           "part_support", "part_score",
-           "judge_parts", "robust_part_fit"]
+           "part_support", "part_score", "judge_parts", "robust_part_fit"]
 
 VERDICTS = ("present", "missing", "displaced", "not visible")
 
@@ -93,10 +92,8 @@ def report_kwargs(pc: PartsConfig) -> tuple[dict, dict]:
     support = dict(fit_px=pc.fit_px, shift_frac=pc.shift_frac, min_points=pc.min_points, colour_ab=pc.colour_ab,
                    step_frac=pc.step_frac, kinds=tuple(PART_KINDS.index(k) for k in pc.kinds))
     judge = dict(flag_below=pc.flag_below, colour_weight=pc.colour_weight, revealed_weight=pc.revealed_weight,
-                 shift_weight=pc.shift_weight,
-                 supported_above=pc.supported_above,
-                 shift_gain=pc.shift_gain, found_shifted=pc.found_shifted, min_points=pc.min_points,
-                 min_visible=pc.min_visible)
+                 shift_weight=pc.shift_weight, supported_above=pc.supported_above, shift_gain=pc.shift_gain,
+                 found_shifted=pc.found_shifted, min_points=pc.min_points, min_visible=pc.min_visible)
     return support, judge
 
 
@@ -128,14 +125,19 @@ def complement_renderers(mesh: Mesh, smooth_normals: bool = True) -> list[tuple[
     return out
 
 
+def _bin_pixel(xy: np.ndarray, ori: np.ndarray, shape: tuple[int, int], n_bins: int) -> tuple[np.ndarray, ...]:
+    """Orientation bin (of ``n_bins`` over [0, pi)), row and column of each contour pixel, clipped to ``shape``."""
+    b = np.floor(np.mod(ori, np.pi) / np.pi * n_bins).astype(int) % n_bins
+    x = np.clip(np.rint(xy[:, 0]).astype(int), 0, shape[1] - 1)
+    y = np.clip(np.rint(xy[:, 1]).astype(int), 0, shape[0] - 1)
+    return b, y, x
+
+
 def _near_maps(xy: np.ndarray, ori: np.ndarray, shape: tuple[int, int], n_bins: int = 8) -> np.ndarray:
     """(n_bins, H, W) bool: a contour pixel of orientation bin b (or b ± 1) lies within 1 px (3 x 3)."""
     maps = np.zeros((n_bins,) + tuple(shape), np.uint8)
     if len(xy):
-        b = np.floor(np.mod(ori, np.pi) / np.pi * n_bins).astype(int) % n_bins
-        x = np.clip(np.rint(xy[:, 0]).astype(int), 0, shape[1] - 1)
-        y = np.clip(np.rint(xy[:, 1]).astype(int), 0, shape[0] - 1)
-        maps[b, y, x] = 1
+        maps[_bin_pixel(xy, ori, shape, n_bins)] = 1
     k3 = np.ones((3, 3), np.uint8)
     dil = np.stack([cv2.dilate(m, k3) for m in maps]).astype(bool)
     return dil | np.roll(dil, 1, axis=0) | np.roll(dil, -1, axis=0)
@@ -143,13 +145,9 @@ def _near_maps(xy: np.ndarray, ori: np.ndarray, shape: tuple[int, int], n_bins: 
 
 def _explained(xy: np.ndarray, ori: np.ndarray, near: np.ndarray) -> np.ndarray:
     """Which contour pixels (xy, ori) another contour (its :func:`_near_maps`) also has."""
-    n_bins, H, W = near.shape
     if not len(xy):
         return np.zeros(0, bool)
-    b = np.floor(np.mod(ori, np.pi) / np.pi * n_bins).astype(int) % n_bins
-    x = np.clip(np.rint(xy[:, 0]).astype(int), 0, W - 1)
-    y = np.clip(np.rint(xy[:, 1]).astype(int), 0, H - 1)
-    return near[b, y, x]
+    return near[_bin_pixel(xy, ori, near.shape[1:], near.shape[0])]
 
 
 def part_contours(r: RenderResult, face_parts: np.ndarray, crease_deg: float = 35.0, depth_jump: float = 0.01,
@@ -261,9 +259,9 @@ def part_support(renderer: Renderer, face_parts: np.ndarray, part_names, pe: Pho
     """
     face_parts = np.asarray(face_parts)
     n_parts = len(part_names)
-    r = renderer.render(T, pe.K, pe.size, pe.size)
-    xy, ori, part, part_map, kind = part_contours(r, face_parts, step_mm=step_frac * renderer.mesh.diameter)
     step_mm = step_frac * renderer.mesh.diameter
+    r = renderer.render(T, pe.K, pe.size, pe.size)
+    xy, ori, part, part_map, kind = part_contours(r, face_parts, step_mm=step_mm)
     keep = np.isin(kind, np.asarray(kinds))
     xy, ori, part = xy[keep], ori[keep], part[keep]
     d, inside = edge_distances(pe, xy, ori, max_bin_gap, fit_px) if len(xy) else (np.zeros(0), np.zeros(0, bool))
@@ -340,20 +338,18 @@ def part_score(p: PartSupport, colour_weight: float = 0.0, colour_median: float 
     search: a displaced part's edges lie nearby; of the exclusive contour when ``revealed_weight`` is set) is
     subtracted too."""
     rel_colour = min(p.colour / colour_median, 1.0) if colour_median > 0 else 1.0
-    if revealed_weight <= 0:
-        edge = p.relative if median is None else (p.support / median if median > 0 else 0.0)
+    med = median if median is not None else (p.support / p.relative if p.relative > 0 else 0.0)
+    if med <= 0:
+        edge = 0.0
+    elif revealed_weight <= 0:
+        edge = p.relative if median is None else p.support / med
     else:
-        med = median if median is not None else (p.support / p.relative if p.relative > 0 else 0.0)
-        if med <= 0:
-            edge = 0.0
-        else:
-            own = p.exclusive if p.n_exclusive >= min_points else p.support
-            edge = own / med - revealed_weight * (p.revealed / med if p.n_revealed >= min_points else 0.0)
-    if shift_weight > 0:
-        med = median if median is not None else (p.support / p.relative if p.relative > 0 else 0.0)
+        own = p.exclusive if p.n_exclusive >= min_points else p.support
+        edge = own / med - revealed_weight * (p.revealed / med if p.n_revealed >= min_points else 0.0)
+    if shift_weight > 0 and med > 0:
         gain = (p.exclusive_shifted - p.exclusive if revealed_weight > 0 and p.n_exclusive >= min_points
                 else p.shifted - p.support)
-        edge -= shift_weight * (max(gain, 0.0) / med if med > 0 else 0.0)
+        edge -= shift_weight * max(gain, 0.0) / med
     return edge + colour_weight * (rel_colour - 1.0)
 
 
