@@ -40,7 +40,7 @@ sys.path.insert(0, str(REPO / "src"))
 sys.path.insert(0, str(REPO / "bench"))
 
 from pixie.config import PixieConfig  # noqa: E402
-from pixie.cues.edge_align import photo_edges  # noqa: E402
+from pixie.cues.edge_align import align_kwargs, photo_edges  # noqa: E402
 from pixie.cues.parts import (PartSupport, complement_renderers, judge_parts, part_renderers, part_support, report_kwargs,  # noqa: E402
                               robust_part_fit)
 from pixie.eval import pose_error as M  # noqa: E402
@@ -63,8 +63,7 @@ def _kw(cfg: PixieConfig, flag_below: float | None = None, colour_weight: float 
                  ("shift_weight", shift_weight)):
         if v is not None:
             judge[k] = v
-    align = dict(schedule=tuple(ac.schedule), iters=ac.iters, crease_weight=ac.crease_weight, search=ac.search,
-                 min_contrast=ac.min_contrast, w_box=ac.w_box, fit_px=ac.fit_px)
+    align = align_kwargs(ac)
     return support, judge, align
 
 

@@ -78,6 +78,8 @@ def main(argv=None) -> int:
     ap.add_argument("--degs", default="5,10,15,20")
     ap.add_argument("--dzs", default="0,0.03,0.06")
     ap.add_argument("--shift-px", type=float, default=3.0)
+    ap.add_argument("--box-noise", type=float, default=0.0,
+                    help="move each side of the GT box by up to this many photo px (uniform, seeded per target): a detector's box")
     ap.add_argument("--set", action="append", default=[], dest="sets")
     ap.add_argument("--out", type=Path, default=REPO / "out/bench/lmo_basin.json")
     args = ap.parse_args(argv)
@@ -95,7 +97,12 @@ def main(argv=None) -> int:
         g = L.gt_instance(ds, t)
         img = ds.load_rgb(t.scene_id, t.im_id)
         K = ds.camera(t.scene_id, t.im_id).K
-        box = check_bbox(g.box_visib, img.shape[:2])
+        box = np.asarray(g.box_visib, np.float64).copy()
+        if args.box_noise > 0:  # x, y, w, h -> each side moved independently
+            d = np.random.default_rng([t.im_id, t.obj_id, 7]).uniform(-args.box_noise, args.box_noise, 4)
+            box = np.array([box[0] + d[0], box[1] + d[1], box[2] - d[0] + d[2], box[3] - d[1] + d[3]])
+            box[2:] = np.maximum(box[2:], 4.0)
+        box = check_bbox(box, img.shape[:2])
         t0 = time.perf_counter()
         pe = photo_edges(img, K, box, **pe_kw)
         t_edges = time.perf_counter() - t0
@@ -124,7 +131,7 @@ def main(argv=None) -> int:
             print(f"  {i + 1} targets, {time.perf_counter() - t_all:.0f} s; 10°/3 %: ADD aligned "
                   f"{np.mean([r['add_aligned'] for r in r10]) if r10 else float('nan'):.2f}", flush=True)
     print(f"edge alignment basin, {len(rows) // (len(degs) * len(dzs))} targets, shift {args.shift_px} px, "
-          f"sets {args.sets}")
+          f"box noise {args.box_noise} px, sets {args.sets}")
     print("| start | n | ADD start | ADD box depth | ADD aligned | + box depth | + visible sides | med rot° start | aligned | "
           "med |dz| box | aligned | s |")
     print("|---|---|---|---|---|---|---|---|---|---|---|---|")

@@ -24,7 +24,7 @@ from pixie.geometry.camera import make_T, validate_pose  # noqa: E402
 from pixie.geometry.mesh import from_arrays  # noqa: E402
 from pixie.geometry.render import Renderer, composite  # noqa: E402
 
-from pixie.synth.e2e import procedural_part  # noqa: E402
+from pixie.synth.e2e import facing_pose, procedural_part  # noqa: E402
 from pixie.weights import shared_root  # noqa: E402
 
 _SHARED = shared_root() or Path("/nonexistent-shared")  # $PIXIE_SHARED, else ../shared beside the repository
@@ -145,18 +145,9 @@ def random_rotation(rng: np.random.Generator) -> np.ndarray:
 
 def pose_facing(mesh, rng: np.random.Generator, distance_factor: float = 4.0, offset_px: float = 0.0,
                 K: np.ndarray | None = None) -> np.ndarray:
-    """A random rotation with the mesh centre ``distance_factor`` diameters in front of the camera.
-
-    ``offset_px`` shifts the centre sideways by about that many pixels (for f ~ 600).
-    """
-    from pixie.geometry.camera import make_T
-
-    R = random_rotation(rng)
-    z = distance_factor * mesh.diameter
-    f = 600.0 if K is None else K[0, 0]
-    shift = rng.uniform(-1, 1, 2) * offset_px * z / f
-    t = np.array([shift[0], shift[1], z]) - R @ mesh.center
-    return make_T(R, t)
+    """A random rotation with the mesh centre ``distance_factor`` diameters in front of the camera
+    (:func:`pixie.synth.e2e.facing_pose`)."""
+    return facing_pose(mesh, rng, distance_factor, offset_px, K)
 
 
 @pytest.fixture(scope="session")

@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import copy
 import os
 
 import numpy as np
@@ -35,9 +36,11 @@ def e2e(query_e2e):
 
 @pytest.mark.slow
 def test_encoded_render_at_a_reference_view_gives_its_pose(e2e, proc_mesh):
-    """Geometry of crop → match → lift → PnP: a query that IS a reference encoding, seen from closer."""
+    """Geometry of crop → match → lift → PnP: a query that IS a reference encoding, seen from closer. The edge
+    alignment is off here: an encoding is not a photo (its drawn edge lines give every contour a second, inner edge,
+    which since session 12's alignment, the box at the coarsest scale only, pulled view 10's depth 3.8 % off)."""
     refs, cfg, matcher = e2e
-    est = PoseEstimator(refs, cfg, matcher=matcher)
+    est = PoseEstimator(refs, copy.deepcopy(cfg).apply_overrides(["align.enabled=false"]), matcher=matcher)
     r_ = Renderer(proc_mesh, smooth_normals=refs.config.smooth_normals)
     for v in (10, 30):
         T = refs.poses[v, 0].copy()

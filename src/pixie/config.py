@@ -332,11 +332,17 @@ class AlignConfig(_Section):
     hypotheses: int = 4  # best distinct hypotheses aligned
     flips: int = 1  # ... and the 180° flip twins (about the camera's x and y axes) of this many of them
     object_px: float = 200.0  # the box's longer side in the alignment crop, px
-    schedule: list[float] = field(default_factory=lambda: [8.0, 4.0, 2.0])  # Tukey scales per level, crop px
+    # Tukey scales per level, crop px: 16 first widens the basin (rendered photos, box_taper 0: 12/12 within 1° / 1 % from
+    # 10° / 5 %, 11/12 with half the part covered; LM-O 96 targets: 31 vs 29 ADD(-S) hits, median rotation 11.7° vs 14.0°)
+    schedule: list[float] = field(default_factory=lambda: [16.0, 8.0, 4.0, 2.0])
     iters: int = 6  # LM iterations per level (the model is re-rendered twice per level)
     search: str = "normal"  # correspondences: along the model normal ('normal') or the nearest edge ('nearest')
     min_contrast: float = 0.0  # >0: silhouette points take only edges with this drop of the colour foreground posterior
     w_box: float = 1.0  # weight of each side of the given box (occlusion-aware: overshoot is robust) against the points
+    # the box's weight is w_box * box_taper**k at the k-th Tukey scale. 0: the box sets depth at the coarsest scale only
+    # and the finer scales fit the contour (rendered photos: 10/12 vs 5/12 within 1° / 1 %; LM-O 96 targets: same ADD,
+    # median rotation 14.0° vs 18.8°; bench/RESULTS.md "Session 12: the box at the coarsest scale only")
+    box_taper: float = 0.0
     crease_weight: float = 0.5
     # a matcher hypothesis's PnP inliers as residuals too (interior points the contour does not constrain): their
     # total weight is w_matches x the contour points', Tukey scale match_px (crop px); 0 = contour and box only
@@ -348,9 +354,9 @@ class AlignConfig(_Section):
     fit_px: float = 1.5  # aligned fit: a contour point is supported by an edge this close (crop px)
     w_fit: float = 1.0  # ranking score = the shape stage's fused score + w_fit * aligned fit
     # calibrated confidence = logistic(a + b * fit + c * margin) of the chosen pose (margin: its score minus the best
-    # distinct alternative's), fitted by bench/lmo_select.py on the even half of the full LM-O dev run s7_full716
-    # (AUC 0.74 on the odd half, bench/RESULTS.md "Edge alignment"); [] = the uncalibrated ratio
-    confidence: list[float] = field(default_factory=lambda: [-3.218, 4.517, 5.610])
+    # distinct alternative's), fitted by bench/lmo_select.py on the even half of the full LM-O dev run s12_full716
+    # (AUC 0.79 on the odd half, bench/RESULTS.md "Session 12"); [] = the uncalibrated ratio
+    confidence: list[float] = field(default_factory=lambda: [-4.351, 5.518, 4.547])
     min_fit: float = 0.05  # a chosen pose with less aligned fit than this is flagged failed ("no edge support")
     prior_margin: float = 0.25  # estimate_from_prior without a box: the prior's box grown by this share of its size
     reset_fit: float = 0.3  # pixie track: a refined prior with less aligned fit is lost -> full search (bench/track.py)
@@ -359,7 +365,7 @@ class AlignConfig(_Section):
 
 _SECTION_NAMES[AlignConfig] = "align"
 CHOICES["align.search"] = ("normal", "nearest")
-RANGES.update({"align.min_contrast": (0, 1, True), "align.w_box": (0, None, True), "align.hypotheses": (0, 64, True), "align.flips": (0, 64, True), "align.object_px": (32, 2048, True),
+RANGES.update({"align.min_contrast": (0, 1, True), "align.w_box": (0, None, True), "align.box_taper": (0, 1, True), "align.hypotheses": (0, 64, True), "align.flips": (0, 64, True), "align.object_px": (32, 2048, True),
                "align.iters": (1, 100, True), "align.crease_weight": (0, 10, True), "align.rot_prior": (0, None, True),
                "align.canny_low": (0, None, True), "align.canny_high": (0, None, True), "align.fit_px": (0, 100, False),
                "align.w_fit": (0, None, True), "align.min_fit": (0, 1, True),

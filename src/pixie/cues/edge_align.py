@@ -45,7 +45,7 @@ from pixie.geometry.render import Renderer
 from pixie.geometry.rotations import rodrigues
 from pixie.references.templates import CREASE, SILHOUETTE, view_points
 
-__all__ = ["PhotoEdges", "AlignResult", "EdgeFit", "photo_edges", "model_points", "align", "edge_fit",
+__all__ = ["PhotoEdges", "AlignResult", "EdgeFit", "photo_edges", "model_points", "align", "align_kwargs", "edge_fit",
            "edge_distances", "flip_twins"]
 
 
@@ -397,7 +397,8 @@ def align(renderer: Renderer, pe: PhotoEdges, T0: np.ndarray, center: np.ndarray
           hull: np.ndarray | None = None, coarse: PhotoEdges | None = None,
           coarse_schedule: tuple[float, ...] = (8.0, 4.0), out_cost: float = 1.0,
           matches: tuple[np.ndarray, np.ndarray] | None = None, w_matches: float = 0.0,
-          match_px: float = 10.0, face_parts: np.ndarray | None = None, drop_parts=()) -> AlignResult:
+          match_px: float = 10.0, face_parts: np.ndarray | None = None, drop_parts=(),
+          box_taper: float = 1.0) -> AlignResult:
     """Levenberg–Marquardt alignment of ``T0`` (photo camera) to the photo's edges, coarse to fine.
 
     Parameters
@@ -421,6 +422,8 @@ def align(renderer: Renderer, pe: PhotoEdges, T0: np.ndarray, center: np.ndarray
     matches, w_matches, match_px : 2D–3D correspondences (photo px (n, 2), object mm (n, 3)), e.g. the PnP inliers
         the start was solved from, as residuals of total weight ``w_matches`` x the contour points', Tukey scale
         ``max(match_px, tau)`` crop px: interior evidence the silhouette does not give; None or 0 = unused
+    box_taper : the box sides' weight is ``w_box * box_taper ** k`` at the k-th Tukey scale (0 = the box only at the
+        first, coarsest scale: it sets depth in the wide basin and leaves the final fit to the contour)
     face_parts, drop_parts : the mesh's part index per triangle and parts whose points are left out (parts the
         photo does not support, e.g. a missing part: :func:`pixie.cues.parts.robust_part_fit`)
     """
@@ -435,6 +438,7 @@ def align(renderer: Renderer, pe: PhotoEdges, T0: np.ndarray, center: np.ndarray
     T = np.asarray(T0, np.float64).copy()
     history, n_it, converged = [], 0, False
     levels = ([(coarse, tuple(coarse_schedule))] if coarse is not None else []) + [(pe, tuple(schedule))]
+    w_box0, k_scale = cfg["w_box"], 0
     for lv, sched in levels:
         cfg["box_sides"] = lv.box_sides
         K = lv.K
@@ -443,6 +447,8 @@ def align(renderer: Renderer, pe: PhotoEdges, T0: np.ndarray, center: np.ndarray
             cfg["m_uv"] = (np.asarray(matches[0], np.float64) - A[:, 2]) @ np.linalg.inv(A[:, :2]).T
             cfg["m_xyz"] = np.asarray(matches[1], np.float64)
         for tau in sched:
+            cfg["w_box"] = w_box0 * float(box_taper) ** k_scale
+            k_scale += 1
             for _ in range(max(rerender, 1)):
                 mp = model_points(renderer, T, K, lv.size, n_points, crease_share)
                 if mp is not None and face_parts is not None and len(drop_parts):
@@ -474,6 +480,15 @@ def align(renderer: Renderer, pe: PhotoEdges, T0: np.ndarray, center: np.ndarray
     fit = edge_fit(renderer, pe, T, n_points=n_points, fit_px=fit_px, max_bin_gap=max_bin_gap)
     return AlignResult(T_cam_from_obj=T, T_init=np.asarray(T0, np.float64), fit=fit, iterations=n_it,
                        converged=converged, history=history)
+
+
+def align_kwargs(ac) -> dict:
+    """The keywords of :func:`align` that ``config.align`` (:class:`pixie.config.AlignConfig`) sets: the one map from
+    the config to the solver (the estimator, the part report's re-alignment, benches and tests use it). The caller
+    adds what belongs to the object and photo (``hull``, ``matches``, ``coarse``)."""
+    return dict(schedule=tuple(ac.schedule), iters=ac.iters, crease_weight=ac.crease_weight, rot_prior=ac.rot_prior,
+                fit_px=ac.fit_px, search=ac.search, min_contrast=ac.min_contrast, w_box=ac.w_box,
+                box_taper=ac.box_taper, w_matches=ac.w_matches, match_px=ac.match_px)
 
 
 def edge_distances(pe: PhotoEdges, p: np.ndarray, ori: np.ndarray, max_bin_gap: int = 1,

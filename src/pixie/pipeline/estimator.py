@@ -67,7 +67,7 @@ from pixie.pipeline.query import QueryCrop, bbox_from_mask, check_bbox, check_qu
 from pixie.references.set import ReferenceSet, add_features
 from pixie.cues.refine import aligned_correspondences, render_in_crop
 from pixie.geometry.render import Renderer
-from pixie.cues.edge_align import align, edge_fit, flip_twins, photo_edges
+from pixie.cues.edge_align import align, align_kwargs, edge_fit, flip_twins, photo_edges
 from pixie.cues.edges import EdgeQuery
 from pixie.cues.parts import (complement_renderers, judge_parts, part_renderers, part_support, report_kwargs,
                               robust_part_fit)
@@ -608,10 +608,7 @@ class PoseEstimator:
         if photo or q.photo_edges is None:
             q.photo_edges = photo_edges(q.image, q.K, q.box, q.mask, object_px=ac.object_px, canny_low=ac.canny_low,
                                         canny_high=ac.canny_high)
-        kw = dict(schedule=tuple(ac.schedule), iters=ac.iters, crease_weight=ac.crease_weight, rot_prior=ac.rot_prior,
-                  fit_px=ac.fit_px, search=ac.search, min_contrast=ac.min_contrast, w_box=ac.w_box,
-                  hull=self.box_points, w_matches=ac.w_matches, match_px=ac.match_px)
-        return ren, q.photo_edges, kw
+        return ren, q.photo_edges, align_kwargs(ac) | {"hull": self.box_points}
 
     def align_stage(self, q: Query, hyps: list[Hypothesis]) -> list[Hypothesis]:
         """Edge-based 6-DoF alignment (``config.align``, :mod:`pixie.cues.edge_align`) of the best distinct hypotheses and

@@ -1,5 +1,7 @@
 """The end-to-end scene of the test suite and ``bench/e2e_margin.py``: a procedural part, generic poses and
-photo-like renders of it (a random colour per CAD face, Lambertian shading, a noisy background).
+photo-like renders of it (a random colour per CAD face, Lambertian shading, a noisy background); and the edge
+alignment's convergence trials (tests/test_edge_align.py, ``bench/align_rendered.py``): the part in a cluttered,
+anti-aliased photo, optionally half covered by a plate, aligned from a turned start.
 
 One home for what the tests and the bench share (no bench script imports the tests).
 """
@@ -10,12 +12,16 @@ import cv2
 import numpy as np
 
 from pixie.config import PixieConfig, RefsConfig
-from pixie.geometry.camera import look_at, make_K, rotation_angle_deg
+from pixie.cues.edge_align import align, photo_edges
+from pixie.geometry.camera import look_at, make_K, make_T, rotation_angle_deg
+from pixie.geometry.mesh import from_arrays
 from pixie.geometry.render import Renderer
 from pixie.references.views import roll
+from pixie.synth.photo import Material, random_background, render_rgb
 
 __all__ = ["K_Q", "H", "W", "E2E_POSES", "e2e_config", "procedural_part", "cad_faces", "render_photo",
-           "generic_pose", "pose_errors"]
+           "generic_pose", "pose_errors", "K_ALIGN", "facing_pose", "turned_pose", "clutter_photo", "plate_renderer",
+           "align_trials"]
 
 K_Q = make_K(600.0, 600.0, 319.5, 239.5)
 H, W = 480, 640
@@ -101,3 +107,84 @@ def generic_pose(mesh, azimuth_deg, elevation_deg, roll_deg, distance_factor=3.0
 
 def pose_errors(T_est, T_true, diameter):
     return rotation_angle_deg(T_est[:3, :3], T_true[:3, :3]), float(np.linalg.norm(T_est[:3, 3] - T_true[:3, 3]) / diameter)
+
+
+# ------------------------------------------------------------------------------------ alignment trials
+
+K_ALIGN = make_K(600.0, 605.0, 321.5, 238.0)  # a VGA camera, principal point slightly off-centre
+
+
+def facing_pose(mesh, rng: np.random.Generator, distance_factor: float = 4.0, offset_px: float = 0.0,
+                K: np.ndarray | None = None) -> np.ndarray:
+    """A uniformly random rotation with the mesh centre ``distance_factor`` diameters in front of the camera,
+    shifted sideways by up to about ``offset_px`` pixels (focal ``K[0, 0]``, 600 px without ``K``)."""
+    from scipy.spatial.transform import Rotation
+
+    R = Rotation.random(random_state=int(rng.integers(1 << 31))).as_matrix()
+    z = distance_factor * mesh.diameter
+    f = 600.0 if K is None else K[0, 0]
+    shift = rng.uniform(-1, 1, 2) * offset_px * z / f
+    return make_T(R, np.array([shift[0], shift[1], z]) - R @ mesh.center)
+
+
+def turned_pose(T: np.ndarray, K: np.ndarray, centre: np.ndarray, deg: float, dz: float, shift_px: float,
+                rng: np.random.Generator) -> np.ndarray:
+    """``T`` turned ``deg`` about a random axis through the object centre, depth x (1 + dz), the centre's image
+    shifted ``shift_px`` pixels in a random direction."""
+    axis = rng.normal(size=3)
+    R = cv2.Rodrigues(axis / np.linalg.norm(axis) * np.radians(deg))[0]
+    c = T[:3, :3] @ centre + T[:3, 3]
+    phi = rng.uniform(0, 2 * np.pi)
+    u = K[0, 0] * c[0] / c[2] + K[0, 2] + shift_px * np.cos(phi)
+    v = K[1, 1] * c[1] / c[2] + K[1, 2] + shift_px * np.sin(phi)
+    z = c[2] * (1.0 + dz)
+    cn = np.array([(u - K[0, 2]) / K[0, 0] * z, (v - K[1, 2]) / K[1, 1] * z, z])
+    R0 = R @ T[:3, :3]
+    return make_T(R0, cn - R0 @ centre)
+
+
+def clutter_photo(renderers, poses, seed: int, K: np.ndarray = K_ALIGN):
+    """A 640 x 480 photo (2x supersampled: edges anti-aliased like a camera's) with random colours, a cluttered
+    background and lights (no cast shadows: cheaper). Returns the image, the first object's visible box (x0, y0, x1,
+    y1) and its visible share."""
+    rng = np.random.default_rng(seed)
+    K2 = K.copy()
+    K2[:2, :2] *= 2
+    K2[0, 2], K2[1, 2] = 2 * K[0, 2] + 0.5, 2 * K[1, 2] + 0.5
+    ph = render_rgb(renderers, poses, K2, 960, 1280, [Material.random(rng) for _ in poses], rng,
+                    background=random_background(960, 1280, rng), shadows=False)
+    img = cv2.resize(ph.rgb, (640, 480), interpolation=cv2.INTER_AREA)
+    vis = cv2.resize(ph.masks_visib[0].astype(np.float32), (640, 480), interpolation=cv2.INTER_AREA) > 0.5
+    full = cv2.resize(ph.masks[0].astype(np.float32), (640, 480), interpolation=cv2.INTER_AREA) > 0.5
+    ys, xs = np.nonzero(vis)
+    return img, np.array([xs.min(), ys.min(), xs.max() + 1, ys.max() + 1], np.float64), vis.sum() / full.sum()
+
+
+def plate_renderer() -> Renderer:
+    """A flat 200 x 200 x 10 mm plate: the distractor that covers half of the part."""
+    import trimesh
+
+    b = trimesh.creation.box(extents=[200.0, 200.0, 10.0])
+    return Renderer(from_arrays(np.asarray(b.vertices), np.asarray(b.faces), name="plate"))
+
+
+def align_trials(mesh, renderer: Renderer, align_kw: dict, n: int = 12, plate: Renderer | None = None,
+                 deg: float = 10.0, dz: float = 0.05, shift_px: float = 3.0) -> list[tuple[float, float]]:
+    """Edge alignment from a turned start on ``n`` seeded photos of ``mesh`` (3.5 diameters away, up to 60 px off
+    centre); with ``plate`` a plate 60 mm in front of the part, shifted sideways to cover about half of it.
+    Returns (rotation error in degrees, relative depth error) per trial."""
+    out = []
+    for seed in range(n):
+        T = facing_pose(mesh, np.random.default_rng(100 + seed), 3.5, 60.0, K_ALIGN)
+        rng = np.random.default_rng(1000 + seed)
+        if plate is None:
+            img, box, _ = clutter_photo([renderer], [T], seed)
+        else:
+            c = T[:3, :3] @ mesh.center + T[:3, 3]
+            side = 1.0 if seed % 2 else -1.0
+            img, box, _ = clutter_photo([renderer, plate], [T, make_T(np.eye(3), c + [side * 105.0, 0.0, -60.0])],
+                                        seed)
+        T0 = turned_pose(T, K_ALIGN, mesh.center, deg, dz, shift_px, rng)
+        Ta = align(renderer, photo_edges(img, K_ALIGN, box), T0, hull=mesh.hull_vertices, **align_kw).T_cam_from_obj
+        out.append((rotation_angle_deg(Ta[:3, :3], T[:3, :3]), abs(Ta[2, 3] - T[2, 3]) / T[2, 3]))
+    return out
