@@ -60,6 +60,25 @@ def stage1(ds, objects, targets, cfg, cache: Path) -> list[dict]:
     return out
 
 
+def align_cached(ds, objects, rec: dict, cfg: PixieConfig, base: PixieConfig, ests: dict) -> tuple[list, float]:
+    """:meth:`PoseEstimator.align_stage` with ``cfg`` on a stage-1 record's hypotheses (copies), and its seconds;
+    ``ests`` caches one estimator per object (built from ``base``)."""
+    sid, iid, oid = rec["target"]
+    if oid not in ests:
+        ests[oid] = PoseEstimator(objects.refs(base, oid, make_matcher(base)), base)
+    est = ests[oid]
+    est.cfg = copy.deepcopy(cfg)
+    img = ds.load_rgb(sid, iid)
+    K = ds.camera(sid, iid).K
+    box = check_bbox(rec["box"], img.shape[:2])
+    q = Query(img, K, box, None, [], [])
+    q.edges = est._shape.query(img, box) if est._shape is not None else None
+    q.best_match = rec["best_match"]
+    hyps = copy.deepcopy(rec["hyps"])
+    t0 = time.perf_counter()
+    return est.align_stage(q, hyps), time.perf_counter() - t0
+
+
 def main(argv=None) -> int:
     ap = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
     ap.add_argument("--dataset", type=Path, default=L.DEFAULT_DATASET)
@@ -96,19 +115,8 @@ def main(argv=None) -> int:
                 rots.append(e["rot_err"])
                 per.append(bool(e["add_ok"]))
                 continue
-            if oid not in ests:
-                ests[oid] = PoseEstimator(objects.refs(base, oid, make_matcher(base)), base)
-            est = ests[oid]
-            est.cfg = copy.deepcopy(cfg)
-            img = ds.load_rgb(sid, iid)
-            K = ds.camera(sid, iid).K
-            box = check_bbox(rec["box"], img.shape[:2])
-            q = Query(img, K, box, None, [], [])
-            q.edges = est._shape.query(img, box) if est._shape is not None else None
-            q.best_match = rec["best_match"]
-            t0 = time.perf_counter()
-            hyps = est.align_stage(q, copy.deepcopy(rec["hyps"]))
-            secs += time.perf_counter() - t0
+            hyps, dt = align_cached(ds, objects, rec, cfg, base, ests)
+            secs += dt
             e = L.pose_errors(od, hyps[0].T_cam_from_obj, g.T_cam_from_obj)
             hits += bool(e["add_ok"])
             per.append(bool(e["add_ok"]))

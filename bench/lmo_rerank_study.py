@@ -21,7 +21,6 @@ per-target maximum) is added with weight w to the shipped ranking score ``fused 
 from __future__ import annotations
 
 import argparse
-import copy
 import hashlib
 import json
 import pickle
@@ -37,7 +36,6 @@ from shade_probe import crop_setup, shade_terms  # noqa: E402
 from pixie.app.runner import make_matcher  # noqa: E402
 from pixie.config import PixieConfig  # noqa: E402
 from pixie.geometry.camera import crop_intrinsics  # noqa: E402
-from pixie.pipeline.estimator import PoseEstimator, Query  # noqa: E402
 from pixie.pipeline.query import check_bbox, square_crop  # noqa: E402
 from pixie.references.encode import encode  # noqa: E402
 
@@ -50,17 +48,7 @@ def stage2(ds, objects, cached, cfg, base, cache: Path) -> list[dict]:
     out, ests = [], {}
     for i, rec in enumerate(cached):
         sid, iid, oid = rec["target"]
-        if oid not in ests:
-            ests[oid] = PoseEstimator(objects.refs(base, oid, make_matcher(base)), base)
-        est = ests[oid]
-        est.cfg = copy.deepcopy(cfg)
-        img = ds.load_rgb(sid, iid)
-        K = ds.camera(sid, iid).K
-        box = check_bbox(rec["box"], img.shape[:2])
-        q = Query(img, K, box, None, [], [])
-        q.edges = est._shape.query(img, box)
-        q.best_match = rec["best_match"]
-        hyps = est.align_stage(q, copy.deepcopy(rec["hyps"]))
+        hyps, _ = S.align_cached(ds, objects, rec, cfg, base, ests)
         od = objects.eval_data(oid)
         g = L.gt_instance(ds, rec["t"])
         cands = []
