@@ -35,8 +35,7 @@ from shade_probe import crop_setup, shade_terms  # noqa: E402
 
 from pixie.app.runner import make_matcher  # noqa: E402
 from pixie.config import PixieConfig  # noqa: E402
-from pixie.geometry.camera import crop_intrinsics  # noqa: E402
-from pixie.pipeline.query import check_bbox, square_crop  # noqa: E402
+from pixie.pipeline.query import check_bbox  # noqa: E402
 from pixie.references.encode import encode  # noqa: E402
 
 REPO = L.REPO
@@ -66,10 +65,10 @@ def stage2(ds, objects, cached, cfg, base, cache: Path) -> list[dict]:
     return out
 
 
-def render_compare(matcher, renderer, img, K, box, Ts, size=256, pad=1.2, enc="shade3_edges"):
-    """Per pose: matches between the photo crop and the pose's render that land where the pose says."""
-    crop = square_crop(img, box, pad, size)
-    Kc = crop_intrinsics(K, crop.A)
+def render_compare(matcher, renderer, crop, Kc, Ts, enc="shade3_edges"):
+    """Per pose: matches between the photo crop (camera ``Kc``, :func:`shade_probe.crop_setup`) and the pose's render
+    that land where the pose says."""
+    size = crop.image.shape[0]
     fq = matcher.extract(crop.image)
     rows = []
     for T in Ts:
@@ -112,8 +111,8 @@ def stage3(ds, objects, recs, base, cache: Path) -> list[dict]:
         img = ds.load_rgb(sid, iid)
         K = ds.camera(sid, iid).K
         box = check_bbox(rec["box"], img.shape[:2])
-        rows = render_compare(matcher, objects.renderer(oid), img, K, box, [c["T"] for c in rec["cands"]])
         crop, Kc, allowed = crop_setup(img, K, box)
+        rows = render_compare(matcher, objects.renderer(oid), crop, Kc, [c["T"] for c in rec["cands"]])
         for c, r in zip(rec["cands"], rows):
             c["terms"].update(r)
             c["terms"].update(shade_terms(objects.renderer(oid), crop, Kc, allowed, c["T"]))

@@ -137,17 +137,7 @@ def K640():
     return make_K(600.0, 605.0, 321.5, 238.0)
 
 
-def random_rotation(rng: np.random.Generator) -> np.ndarray:
-    from scipy.spatial.transform import Rotation
-
-    return Rotation.random(random_state=int(rng.integers(1 << 31))).as_matrix()
-
-
-def pose_facing(mesh, rng: np.random.Generator, distance_factor: float = 4.0, offset_px: float = 0.0,
-                K: np.ndarray | None = None) -> np.ndarray:
-    """A random rotation with the mesh centre ``distance_factor`` diameters in front of the camera
-    (:func:`pixie.synth.e2e.facing_pose`)."""
-    return facing_pose(mesh, rng, distance_factor, offset_px, K)
+pose_facing = facing_pose  # a random rotation, the mesh centre some diameters in front of the camera (pixie.synth.e2e)
 
 
 @pytest.fixture(scope="session")
