@@ -7,7 +7,7 @@ import numpy as np
 import pytest
 
 from pixie.geometry.camera import make_K, project, transform_points
-from pixie.references.templates import CREASE, SILHOUETTE, build_templates
+from pixie.references.templates import CREASE, SILHOUETTE, _edge_map_full, build_templates, edge_map
 from pixie.cues.edges import prepare_query, quantised_orientations, search, template_bank
 from pixie.pipeline.query import bbox_from_mask, check_bbox
 from pixie.geometry.render import Renderer
@@ -19,6 +19,22 @@ H, W = 480, 640
 @pytest.fixture(scope="module")
 def proc_templates(proc_mesh):
     return build_templates(proc_mesh, n_views=240, size=96, renderer=Renderer(proc_mesh))
+
+
+@pytest.mark.parametrize("seed,offset_px", [(1, 0.0), (2, 200.0)])
+def test_edge_map_on_the_mask_box_equals_the_whole_image(proc_mesh, make_pose, seed, offset_px):
+    """edge_map computes only the mask's box + margin: silhouettes, creases and strengths are those of the whole
+    image, orientations agree to float rounding (OpenCV's vector / scalar filter paths), nothing outside the box."""
+    T = make_pose(proc_mesh, seed, distance_factor=3.0, offset_px=offset_px, K=K)
+    r = Renderer(proc_mesh).render(T, K, H, W)
+    assert 500 < r.mask.sum() < 0.5 * H * W
+    box = edge_map(r.depth, r.normals)
+    full = _edge_map_full(r.depth, r.normals, 35.0, 0.03)
+    for a, b in zip(box[:2], full[:2]):
+        assert a.sum() > 50 and np.array_equal(a, b)
+    on = box[0] | box[1]
+    assert np.abs(box[2] - full[2])[on].max() < 1e-4
+    assert np.array_equal(box[3], full[3])
 
 
 def _centred_rotation(T, centre):

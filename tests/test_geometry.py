@@ -58,13 +58,19 @@ def test_roundtrip_lmo(lmo_meshes, K640, make_pose):
             assert px < 0.01, f"obj {obj_id} seed {seed}: reprojection error {px:.4f} px"
 
 
-def test_render_roi_auto_equals_full(proc_mesh, K640, make_pose):
-    """The bounding-sphere ROI only skips rays that would miss: same image as casting every pixel."""
-    T = make_pose(proc_mesh, 7, distance_factor=2.0, offset_px=150)
+@pytest.mark.parametrize("seed,distance_factor", [(7, 2.0), (8, 3.0), (9, 0.45)])
+def test_render_roi_auto_equals_full(proc_mesh, K640, make_pose, seed, distance_factor):
+    """The automatic ROI (projected hull box; the bounding sphere's when the camera is too close) only skips
+    rays that would miss: the same image as casting every pixel, and a smaller box than the sphere's."""
+    T = make_pose(proc_mesh, seed, distance_factor=distance_factor, offset_px=150)
     r = Renderer(proc_mesh)
     a, b = r.render(T, K640, H, W), r.render(T, K640, H, W, roi=None)
-    assert np.array_equal(a.tri_ids, b.tri_ids)
-    assert np.array_equal(a.depth, b.depth)
+    assert a.mask.sum() > 100
+    for f in ("tri_ids", "depth", "normals", "xyz"):
+        assert np.array_equal(getattr(a, f), getattr(b, f)), f
+    x0, y0, x1, y1 = r._hull_roi(T, K640, H, W) or (0, 0, W, H)  # None: too close, every pixel
+    s0, t0, s1, t1 = r._sphere_roi(T, K640, H, W) or (0, 0, W, H)
+    assert (x1 - x0) * (y1 - y0) <= (s1 - s0) * (t1 - t0)
 
 
 def test_render_with_shifted_K_equals_crop(proc_mesh, K640, make_pose):

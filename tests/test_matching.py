@@ -69,7 +69,8 @@ def _brute_force_mnn(
 
 
 @pytest.mark.parametrize(
-    ("window", "ratio", "min_sim"), [(None, None, None), (30.0, None, None), (30.0, 0.98, None), (None, None, 0.2)]
+    ("window", "ratio", "min_sim"),
+    [(None, None, None), (30.0, None, None), (30.0, 0.98, None), (None, None, 0.2), (12.0, None, 0.1), (12.0, 0.95, None)],
 )
 def test_mutual_nn_equals_brute_force(window: float | None, ratio: float | None, min_sim: float | None) -> None:
     rng = np.random.default_rng(3)
@@ -87,6 +88,25 @@ def test_mutual_nn_equals_brute_force(window: float | None, ratio: float | None,
             assert np.allclose(m.scores, expect, atol=1e-5)
         total += len(m)
     assert total > 0
+
+
+@pytest.mark.parametrize(("window", "ratio"), [(32.0, None), (10.0, 0.9)])
+def test_banded_window_matching_equals_the_dense_products(window: float, ratio: float | None) -> None:
+    """The CPU path computes only the row bands a window can reach; it returns the dense path's matches."""
+    import torch
+
+    from pixie.matching.base import RefBank
+    from pixie.matching.mnn import _mnn_banded, _mnn_dense
+
+    rng = np.random.default_rng(5)
+    q = _random_features(rng, 300, dim=64, size=256)
+    bank = RefBank([_random_features(rng, n, dim=64, size=256) for n in (200, 0, 150, 1, 250, 90)], torch.device("cpu"))
+    args = (torch.from_numpy(q.descriptors), torch.from_numpy(q.keypoints.astype(np.float32)), bank, window, ratio, None, 20000)
+    dense, banded = _mnn_dense(*args), _mnn_banded(*args)
+    assert len(dense[0]) > 20
+    for a, b in zip(dense[:3], banded[:3]):  # query, reference and keypoint indices
+        assert torch.equal(a, b)
+    assert torch.allclose(dense[3], banded[3], rtol=0, atol=1e-6)  # similarities: smaller products, same sums
 
 
 def test_window_excludes_far_pairs() -> None:

@@ -64,6 +64,8 @@ class Mesh:
     _diameter: float | None = field(default=None, repr=False)
     _corner_normals: np.ndarray | None = field(default=None, repr=False)
     _hull_vertices: np.ndarray | None = field(default=None, repr=False)
+    _center: np.ndarray | None = field(default=None, repr=False)
+    _radius: float | None = field(default=None, repr=False)
 
     @property
     def n_parts(self) -> int:
@@ -101,8 +103,10 @@ class Mesh:
 
     @property
     def center(self) -> np.ndarray:
-        """Centre of the axis-aligned bounding box (3,), mm."""
-        return 0.5 * (self.bbox_min + self.bbox_max)
+        """Centre of the axis-aligned bounding box (3,), mm (computed once: a mesh's vertices do not change)."""
+        if self._center is None:
+            self._center = 0.5 * (self.bbox_min + self.bbox_max)
+        return self._center.copy()
 
     @property
     def hull_vertices(self) -> np.ndarray:
@@ -121,8 +125,10 @@ class Mesh:
 
     @property
     def bounding_radius(self) -> float:
-        """Radius of the sphere about ``center`` that contains every vertex, mm."""
-        return float(np.linalg.norm(self.vertices - self.center, axis=1).max())
+        """Radius of the sphere about ``center`` that contains every vertex, mm (computed once)."""
+        if self._radius is None:
+            self._radius = float(np.linalg.norm(self.vertices - self.center, axis=1).max())
+        return self._radius
 
     def corner_normals(self, crease_deg: float = 30.0) -> np.ndarray:
         """Per-corner normals (F, 3, 3) that are smooth across gentle edges and sharp across creases.

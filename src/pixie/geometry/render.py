@@ -66,6 +66,7 @@ class Renderer:
         # Plane of each face: n . x = offset (float64, for exact hit points).
         self._offset = np.einsum("ij,ij->i", self._fn, mesh.vertices[mesh.faces[:, 0]])
         self._cn32 = mesh.corner_normals(crease_deg).astype(np.float32) if smooth_normals else None
+        self._hull: np.ndarray | None = None  # convex-hull vertices (the render's ROI), on first use
 
     def render(
         self,
@@ -83,8 +84,9 @@ class Renderer:
         K : (3, 3)
         height, width : int
         roi : (x0, y0, x1, y1), 'auto' or None
-            Pixels to cast rays for. 'auto' (default) uses the projection of the mesh's bounding
-            sphere, which is exact and saves most rays for small objects; None casts every pixel.
+            Pixels to cast rays for. 'auto' (default) uses the box of the projected convex-hull vertices
+            (the bounding sphere's projection when the camera is inside or too close to the hull), which
+            is exact and saves most rays; None casts every pixel.
         """
         if height <= 0 or width <= 0:
             raise CameraError(f"image size must be positive, got {width}x{height}")
@@ -92,7 +94,7 @@ class Renderer:
         T = validate_pose(T_cam_from_obj)
         out = _empty(height, width, K, T)
         if roi == "auto":
-            roi = self._sphere_roi(T, K, height, width)
+            roi = self._hull_roi(T, K, height, width)
         x0, y0, x1, y1 = (0, 0, width, height) if roi is None else roi
         if x1 <= x0 or y1 <= y0:
             return out
@@ -138,6 +140,21 @@ class Renderer:
         out.xyz[rows, cols] = p_obj
         out.tri_ids[rows, cols] = prim
         return out
+
+    def _hull_roi(self, T: np.ndarray, K: np.ndarray, h: int, w: int) -> tuple[int, int, int, int] | None:
+        """Pixel box that contains the projection of the mesh: the box of its projected convex-hull vertices
+        (a triangle projects inside the hull of its projected corners), one pixel wider on each side.
+        Falls back to :meth:`_sphere_roi` when a hull vertex is not in front of the camera."""
+        if self._hull is None:
+            self._hull = self.mesh.hull_vertices.astype(np.float64)
+        p = self._hull @ T[:3, :3].T + T[:3, 3]
+        if p[:, 2].min() <= 1e-6:
+            return self._sphere_roi(T, K, h, w)
+        u = K[0, 0] * p[:, 0] / p[:, 2] + K[0, 2]  # the rays' camera (skew unused, as in render)
+        v = K[1, 1] * p[:, 1] / p[:, 2] + K[1, 2]
+        u0, u1 = int(np.floor(u.min())) - 1, int(np.ceil(u.max())) + 2
+        v0, v1 = int(np.floor(v.min())) - 1, int(np.ceil(v.max())) + 2
+        return max(u0, 0), max(v0, 0), min(u1, w), min(v1, h)
 
     def _sphere_roi(self, T: np.ndarray, K: np.ndarray, h: int, w: int) -> tuple[int, int, int, int] | None:
         """Pixel box that contains the projection of the mesh's bounding sphere."""

@@ -227,6 +227,7 @@ class RefBank:
     features: list[Features]
     device: torch.device
     _padded: dict[str, torch.Tensor] | None = field(default=None, repr=False)
+    _by_row: dict[str, torch.Tensor] | None = field(default=None, repr=False)
 
     def __len__(self) -> int:
         return len(self.features)
@@ -261,6 +262,23 @@ class RefBank:
                 "valid": torch.from_numpy(valid).to(self.device),
             }
         return self._padded
+
+    def padded_by_row(self) -> dict[str, torch.Tensor]:
+        """:meth:`padded` with each reference's keypoints sorted by image row (``y``; padding last), plus
+        ``order (B, M)``: the position in :meth:`padded` of each sorted entry. Banded window matching
+        (:func:`pixie.matching.mnn.mutual_nn_match_many`) takes one contiguous range of them per band of rows."""
+        if self._by_row is None:
+            p = self.padded()
+            order = torch.argsort(p["kp"][..., 1], dim=1, stable=True)
+            take = order[..., None]
+            self._by_row = {
+                "desc": torch.gather(p["desc"], 1, take.expand(-1, -1, p["desc"].shape[2])),
+                "kp": torch.gather(p["kp"], 1, take.expand(-1, -1, 2)),
+                "sqnorm": torch.gather(p["sqnorm"], 1, order),
+                "valid": torch.gather(p["valid"], 1, order),
+                "order": order,
+            }
+        return self._by_row
 
 
 def _sample(dense: torch.Tensor, grid: torch.Tensor, mode: str, align_corners: bool) -> torch.Tensor:

@@ -71,9 +71,9 @@ def _mnn_chunk(
             q_sqnorm[None, :, None] + sqnorm[:, None, :], q_kp[None].expand(b, -1, -1), kp.transpose(1, 2),
             alpha=-2.0,
         )
-        sim = torch.where(d2 < window * window, sim, _NEG)  # padding lies far outside every window
+        sim.masked_fill_(d2 >= window * window, _NEG)  # in place; padding lies far outside every window
     else:
-        sim = torch.where(valid[:, None, :], sim, _NEG)
+        sim.masked_fill_(~valid[:, None, :], _NEG)
     second = None
     if ratio is not None and sim.shape[2] >= 2:
         top = sim.topk(2, dim=2)
@@ -112,6 +112,75 @@ def _mnn_dense(
         out_q.append(qq)
         out_r.append(rr)
         out_s.append(ss)
+    return torch.cat(out_q), torch.cat(out_b), torch.cat(out_r), torch.cat(out_s)
+
+
+def _row_bands(y: torch.Tensor, height: float) -> list[torch.Tensor]:
+    """Indices of the query keypoints in bands of image rows ``height`` tall (empty bands left out)."""
+    band = torch.floor((y - y.min()) / height).long()
+    order = torch.argsort(band, stable=True)
+    ends = torch.cumsum(torch.bincount(band), 0).tolist()
+    starts = [0] + ends[:-1]
+    return [order[a:b] for a, b in zip(starts, ends) if b > a]
+
+
+def _mnn_banded(
+    q_desc: torch.Tensor,
+    q_kp: torch.Tensor,
+    bank: RefBank,
+    window: float,
+    ratio: float | None,
+    min_sim: float | None,
+    chunk_elems: int,
+) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor, torch.Tensor]:
+    """:func:`_mnn_dense` with a spatial window, computing only the similarities that can fall inside it.
+
+    The query keypoints are split into bands of rows ``window`` tall; with every reference's keypoints sorted
+    by row (:meth:`RefBank.padded_by_row`), a band's candidates in a chunk of references lie in one range of
+    columns (rows within ``window`` + 1 px of the band), so each band is one smaller product. The window test,
+    row maxima, column maxima and the mutual check are those of the dense version: the same matches (the
+    products agree to float rounding), at about half the work on object-centred crops.
+    """
+    pad = bank.padded_by_row()
+    b_all, m, _ = pad["desc"].shape
+    n = q_desc.shape[0]
+    per = max(1, chunk_elems // max(1, n * m))
+    q_sqnorm = (q_kp.double() ** 2).sum(-1).float()
+    rows = pad["kp"][..., 1].contiguous()
+    bands = [(qi, q_desc[qi], q_kp[qi], q_sqnorm[qi], q_kp[qi, 1].min(), q_kp[qi, 1].max())
+             for qi in _row_bands(q_kp[:, 1], window)]
+    reach, w2 = window + 1.0, window * window
+    out_q, out_b, out_r, out_s = [], [], [], []
+    for s0 in range(0, b_all, per):
+        sl = slice(s0, s0 + per)
+        desc, kp, sqnorm, rows_c = pad["desc"][sl], pad["kp"][sl], pad["sqnorm"][sl], rows[sl]
+        b = desc.shape[0]
+        best = torch.full((b, n), _NEG)
+        second = torch.full((b, n), _NEG) if ratio is not None else None
+        fwd = torch.zeros((b, n), dtype=torch.long)
+        col_best = torch.full((b, m), _NEG)
+        for qi, qd, qk, qs, y0, y1 in bands:
+            lo = int(torch.searchsorted(rows_c, (y0 - reach).expand(b, 1).contiguous(), right=True).min())
+            hi = int(torch.searchsorted(rows_c, (y1 + reach).expand(b, 1).contiguous()).max())
+            if hi <= lo:
+                continue
+            sim = torch.matmul(qd, desc[:, lo:hi].transpose(1, 2))  # (b, n_band, hi - lo)
+            d2 = torch.baddbmm(qs[None, :, None] + sqnorm[:, None, lo:hi], qk[None].expand(b, -1, -1),
+                               kp[:, lo:hi].transpose(1, 2), alpha=-2.0)
+            sim.masked_fill_(d2 >= w2, _NEG)
+            if second is not None and sim.shape[2] >= 2:
+                top = sim.topk(2, dim=2)
+                best[:, qi], f, second[:, qi] = top.values[..., 0], top.indices[..., 0], top.values[..., 1]
+            else:
+                best[:, qi], f = sim.max(dim=2)
+            fwd[:, qi] = f + lo
+            col_best[:, lo:hi] = torch.maximum(col_best[:, lo:hi], sim.amax(dim=1))
+        ok = (best >= torch.gather(col_best, 1, fwd)) & _accept(best, second, ratio, min_sim)
+        bb, qq = ok.nonzero(as_tuple=True)
+        out_b.append(bb + s0)
+        out_q.append(qq)
+        out_r.append(pad["order"][sl][bb, fwd[bb, qq]])
+        out_s.append(best[bb, qq])
     return torch.cat(out_q), torch.cat(out_b), torch.cat(out_r), torch.cat(out_s)
 
 
@@ -163,7 +232,10 @@ def mutual_nn_match_many(
         q_desc = torch.from_numpy(q.descriptors).to(dev)
         q_kp = torch.from_numpy(q.keypoints).to(dev)
         win = None if window is None else float(window)
-        res = _mnn_dense(q_desc, q_kp, bank, win, ratio, min_similarity, int(chunk_elems))
+        if win is not None and dev.type == "cpu":
+            res = _mnn_banded(q_desc, q_kp, bank, win, ratio, min_similarity, int(chunk_elems))
+        else:
+            res = _mnn_dense(q_desc, q_kp, bank, win, ratio, min_similarity, int(chunk_elems))
         return _pairs_to_matches(*res, n_refs=len(bank))
 
 

@@ -176,7 +176,34 @@ def edge_map(depth: np.ndarray, normals: np.ndarray, crease_deg: float = 35.0,
     crease : (S, S) bool, inner edge pixels (not on the silhouette)
     ori : (S, S) float32, unsigned gradient orientation in [0, pi)
     strength : (S, S) float32, edge strength (1 on the silhouette, the normal turn's cosine gap on creases)
+
+    Only the mask's box and a margin wider than every filter's reach are computed (the rest is background:
+    no edge, orientation 0, strength 0), which gives the same maps as the whole image at a fraction of the cost.
     """
+    mask = depth > 0
+    H, W = mask.shape
+    rows, cols = np.flatnonzero(mask.any(axis=1)), np.flatnonzero(mask.any(axis=0))
+    if len(rows) == 0:
+        return (np.zeros((H, W), bool), np.zeros((H, W), bool), np.zeros((H, W), np.float32),
+                np.zeros((H, W), np.float32))
+    m = _EDGE_MARGIN
+    y0, y1 = max(rows[0] - m, 0), min(rows[-1] + m + 1, H)
+    x0, x1 = max(cols[0] - m, 0), min(cols[-1] + m + 1, W)
+    if (y1 - y0) * (x1 - x0) >= H * W:
+        return _edge_map_full(depth, normals, crease_deg, depth_jump)
+    sub = _edge_map_full(depth[y0:y1, x0:x1], normals[y0:y1, x0:x1], crease_deg, depth_jump)
+    out = (np.zeros((H, W), bool), np.zeros((H, W), bool), np.zeros((H, W), np.float32), np.zeros((H, W), np.float32))
+    for o, a in zip(out, sub):
+        o[y0:y1, x0:x1] = a
+    return out
+
+
+_EDGE_MARGIN = 8  # px around the mask's box: > the reach of the blurs (radius 4, 3) + Sobel (1) + neighbours (1)
+
+
+def _edge_map_full(depth: np.ndarray, normals: np.ndarray, crease_deg: float,
+                   depth_jump: float) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
+    """:func:`edge_map` computed over the whole of ``depth``."""
     mask = depth > 0
     m8 = mask.astype(np.uint8)
     sil = mask & (cv2.erode(m8, np.ones((3, 3), np.uint8), borderType=cv2.BORDER_CONSTANT, borderValue=0) == 0)
