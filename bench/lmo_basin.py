@@ -10,8 +10,11 @@ random axis through the object centre, depth scaled by ``1 ± dz``, the image of
 ``shift-px`` in a random direction; all seeded per target) the start pose is aligned to the photo's edges in the
 GT ``bbox_visib`` box. Reports ADD(-S)<0.1d, median rotation error and median |dz| of the start, of the start with
 the box depth (:func:`pixie.pose.depth_from_box`, as the pipeline sets it) and of the aligned pose; seconds per
-alignment. ``--set`` passes keywords to `pixie.cues.edge_align.align` / `pixie.cues.edge_align.photo_edges`
-(e.g. ``object_px=250``, ``schedule=16,8,4,2``).
+alignment. The alignment runs with the preset's settings (``--preset``, default ``default``: what the pipeline
+runs, through :func:`pixie.cues.edge_align.align_kwargs`); ``--set`` overrides keywords of
+`pixie.cues.edge_align.align` / `pixie.cues.edge_align.photo_edges` on top (e.g. ``object_px=250``,
+``schedule=16,8,4,2``). Before session 13 the bench started from ``align()``'s own keyword defaults (no box,
+scales 8 → 2) unless ``--set`` said otherwise.
 """
 
 from __future__ import annotations
@@ -30,7 +33,8 @@ import common as L  # noqa: E402  (bench/common.py: targets, object cache, prese
 REPO = L.REPO
 
 from pixie.geometry.camera import make_T  # noqa: E402
-from pixie.cues.edge_align import align, photo_edges  # noqa: E402
+from pixie.config import PixieConfig  # noqa: E402
+from pixie.cues.edge_align import align, align_kwargs, photo_edges  # noqa: E402
 from pixie.pose.solve import depth_from_box, depth_from_visible_sides  # noqa: E402
 from pixie.pipeline.query import check_bbox  # noqa: E402
 
@@ -53,10 +57,16 @@ def perturbed(T: np.ndarray, K: np.ndarray, centre: np.ndarray, deg: float, dz: 
     return make_T(R0, cn - R0 @ centre)
 
 
-def parse_sets(items: list[str]) -> tuple[dict, dict]:
+def preset_kwargs(preset: str) -> tuple[dict, dict]:
+    """The photo-edge and alignment keywords the pipeline uses under ``preset`` (the estimator's ``_align_setup``)."""
+    ac = PixieConfig.from_preset(preset).align
+    return dict(object_px=ac.object_px, canny_low=ac.canny_low, canny_high=ac.canny_high), align_kwargs(ac)
+
+
+def parse_sets(items: list[str], preset: str = "default") -> tuple[dict, dict]:
     pe_keys = set(inspect.signature(photo_edges).parameters)
     al_keys = set(inspect.signature(align).parameters)
-    pe_kw, al_kw = {}, {}
+    pe_kw, al_kw = preset_kwargs(preset)
     for it in items:
         k, _, v = it.partition("=")
         val = tuple(float(x) for x in v.split(",")) if "," in v else (float(v) if v.replace(".", "", 1).lstrip("-").isdigit() else v)
@@ -81,9 +91,10 @@ def main(argv=None) -> int:
     ap.add_argument("--box-noise", type=float, default=0.0,
                     help="move each side of the GT box by up to this many photo px (uniform, seeded per target): a detector's box")
     ap.add_argument("--set", action="append", default=[], dest="sets")
+    ap.add_argument("--preset", default="default", help="alignment settings to start from (then --set)")
     ap.add_argument("--out", type=Path, default=REPO / "out/bench/lmo_basin.json")
     args = ap.parse_args(argv)
-    pe_kw, al_kw = parse_sets(args.sets)
+    pe_kw, al_kw = parse_sets(args.sets, args.preset)
     degs = [float(x) for x in args.degs.split(",")]
     dzs = [float(x) for x in args.dzs.split(",")]
     ds = L.BopDataset(args.dataset)
@@ -131,7 +142,7 @@ def main(argv=None) -> int:
             print(f"  {i + 1} targets, {time.perf_counter() - t_all:.0f} s; 10°/3 %: ADD aligned "
                   f"{np.mean([r['add_aligned'] for r in r10]) if r10 else float('nan'):.2f}", flush=True)
     print(f"edge alignment basin, {len(rows) // (len(degs) * len(dzs))} targets, shift {args.shift_px} px, "
-          f"box noise {args.box_noise} px, sets {args.sets}")
+          f"box noise {args.box_noise} px, preset {args.preset}, sets {args.sets}")
     print("| start | n | ADD start | ADD box depth | ADD aligned | + box depth | + visible sides | med rot° start | aligned | "
           "med |dz| box | aligned | s |")
     print("|---|---|---|---|---|---|---|---|---|---|---|---|")
