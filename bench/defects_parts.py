@@ -40,7 +40,7 @@ sys.path.insert(0, str(REPO / "src"))
 sys.path.insert(0, str(REPO / "bench"))
 
 from pixie.config import PixieConfig  # noqa: E402
-from pixie.cues.edge_align import align_kwargs, photo_edges  # noqa: E402
+from pixie.cues.edge_align import align_kwargs, photo_edges, photo_edges_kwargs  # noqa: E402
 from pixie.cues.parts import (PartSupport, complement_renderers, judge_parts, part_renderers, part_support, report_kwargs,  # noqa: E402
                               robust_part_fit)
 from pixie.eval import pose_error as M  # noqa: E402
@@ -113,8 +113,7 @@ def analyse(data: Path, ests: dict, cfg: PixieConfig, echo=print, use_mask: bool
         x, y, w, h = inst.box_visib
         ac = cfg.align
         mask = ds.load_mask_visib(sid, im, 0) if use_mask else None
-        pe = photo_edges(img, K, np.array([x, y, x + w, y + h], np.float64), mask=mask, object_px=ac.object_px,
-                         canny_low=ac.canny_low, canny_high=ac.canny_high)
+        pe = photo_edges(img, K, np.array([x, y, x + w, y + h], np.float64), mask=mask, **photo_edges_kwargs(ac))
         defect = v.get("defect") or {}
         rec = dict(scene_id=sid, im_id=im, obj_id=oid, defect=defect.get("type"), defect_part=defect.get("part"),
                    colour=v["colour_variant"], family="mechanical" if "standoff" in " ".join(mesh.part_names) else "lego",

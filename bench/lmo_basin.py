@@ -34,7 +34,7 @@ REPO = L.REPO
 
 from pixie.geometry.camera import make_T  # noqa: E402
 from pixie.config import PixieConfig  # noqa: E402
-from pixie.cues.edge_align import align, align_kwargs, photo_edges  # noqa: E402
+from pixie.cues.edge_align import align, align_kwargs, photo_edges, photo_edges_kwargs  # noqa: E402
 from pixie.pose.solve import depth_from_box, depth_from_visible_sides  # noqa: E402
 from pixie.pipeline.query import check_bbox  # noqa: E402
 
@@ -60,7 +60,7 @@ def perturbed(T: np.ndarray, K: np.ndarray, centre: np.ndarray, deg: float, dz: 
 def preset_kwargs(preset: str) -> tuple[dict, dict]:
     """The photo-edge and alignment keywords the pipeline uses under ``preset`` (the estimator's ``_align_setup``)."""
     ac = PixieConfig.from_preset(preset).align
-    return dict(object_px=ac.object_px, canny_low=ac.canny_low, canny_high=ac.canny_high), align_kwargs(ac)
+    return photo_edges_kwargs(ac), align_kwargs(ac)
 
 
 def parse_sets(items: list[str], preset: str = "default") -> tuple[dict, dict]:

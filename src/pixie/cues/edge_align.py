@@ -45,7 +45,7 @@ from pixie.geometry.render import Renderer
 from pixie.geometry.rotations import rodrigues
 from pixie.references.templates import CREASE, SILHOUETTE, view_points
 
-__all__ = ["PhotoEdges", "AlignResult", "EdgeFit", "photo_edges", "model_points", "align", "align_kwargs", "edge_fit",
+__all__ = ["PhotoEdges", "AlignResult", "EdgeFit", "photo_edges", "model_points", "align", "align_kwargs", "photo_edges_kwargs", "edge_fit",
            "edge_distances", "flip_twins"]
 
 
@@ -489,6 +489,12 @@ def align_kwargs(ac) -> dict:
     return dict(schedule=tuple(ac.schedule), iters=ac.iters, crease_weight=ac.crease_weight, rot_prior=ac.rot_prior,
                 fit_px=ac.fit_px, search=ac.search, min_contrast=ac.min_contrast, w_box=ac.w_box,
                 box_taper=ac.box_taper, w_matches=ac.w_matches, match_px=ac.match_px)
+
+
+def photo_edges_kwargs(ac) -> dict:
+    """The keywords of :func:`photo_edges` that ``config.align`` sets (the estimator, benches): the crop's object size
+    and the Canny thresholds."""
+    return dict(object_px=ac.object_px, canny_low=ac.canny_low, canny_high=ac.canny_high)
 
 
 def edge_distances(pe: PhotoEdges, p: np.ndarray, ori: np.ndarray, max_bin_gap: int = 1,

@@ -66,7 +66,6 @@ class Renderer:
         # Plane of each face: n . x = offset (float64, for exact hit points).
         self._offset = np.einsum("ij,ij->i", self._fn, mesh.vertices[mesh.faces[:, 0]])
         self._cn32 = mesh.corner_normals(crease_deg).astype(np.float32) if smooth_normals else None
-        self._hull: np.ndarray | None = None  # convex-hull vertices (the render's ROI), on first use
 
     def render(
         self,
@@ -145,9 +144,7 @@ class Renderer:
         """Pixel box that contains the projection of the mesh: the box of its projected convex-hull vertices
         (a triangle projects inside the hull of its projected corners), one pixel wider on each side.
         Falls back to :meth:`_sphere_roi` when a hull vertex is not in front of the camera."""
-        if self._hull is None:
-            self._hull = self.mesh.hull_vertices.astype(np.float64)
-        p = self._hull @ T[:3, :3].T + T[:3, 3]
+        p = self.mesh.hull_vertices @ T[:3, :3].T + T[:3, 3]  # the mesh computes its hull once
         if p[:, 2].min() <= 1e-6:
             return self._sphere_roi(T, K, h, w)
         u = K[0, 0] * p[:, 0] / p[:, 2] + K[0, 2]  # the rays' camera (skew unused, as in render)

@@ -264,9 +264,10 @@ class RefBank:
         return self._padded
 
     def padded_by_row(self) -> dict[str, torch.Tensor]:
-        """:meth:`padded` with each reference's keypoints sorted by image row (``y``; padding last), plus
-        ``order (B, M)``: the position in :meth:`padded` of each sorted entry. Banded window matching
-        (:func:`pixie.matching.mnn.mutual_nn_match_many`) takes one contiguous range of them per band of rows."""
+        """``desc``, ``kp``, ``sqnorm`` of :meth:`padded` with each reference's keypoints sorted by image row (``y``;
+        padding last), ``rows (B, M)`` those rows, and ``order (B, M)``: the position in :meth:`padded` of each
+        sorted entry. Banded window matching (:func:`pixie.matching.mnn.mutual_nn_match_many`) takes one
+        contiguous range of them per band of rows."""
         if self._by_row is None:
             p = self.padded()
             order = torch.argsort(p["kp"][..., 1], dim=1, stable=True)
@@ -275,9 +276,9 @@ class RefBank:
                 "desc": torch.gather(p["desc"], 1, take.expand(-1, -1, p["desc"].shape[2])),
                 "kp": torch.gather(p["kp"], 1, take.expand(-1, -1, 2)),
                 "sqnorm": torch.gather(p["sqnorm"], 1, order),
-                "valid": torch.gather(p["valid"], 1, order),
                 "order": order,
             }
+            self._by_row["rows"] = self._by_row["kp"][..., 1].contiguous()
         return self._by_row
 
 

@@ -47,6 +47,25 @@ def _accept(
     return ok
 
 
+def _mask_window_(sim: torch.Tensor, q_kp: torch.Tensor, q_sqnorm: torch.Tensor, kp: torch.Tensor,
+                  sqnorm: torch.Tensor, window: float) -> None:
+    """Set the similarities ``sim (b, N, M)`` of keypoint pairs ``window`` px or more apart to ``_NEG``, in place."""
+    # squared distances in one fused kernel: |q|^2 + |r|^2 - 2 q.r
+    d2 = torch.baddbmm(q_sqnorm[None, :, None] + sqnorm[:, None, :], q_kp[None].expand(sim.shape[0], -1, -1),
+                       kp.transpose(1, 2), alpha=-2.0)
+    sim.masked_fill_(d2 >= window * window, _NEG)
+
+
+def _row_best(sim: torch.Tensor, ratio: float | None) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor | None]:
+    """Best similarity of each query keypoint ``(b, N)``, its column, and the second best (for the ratio test;
+    ``None`` without one or with fewer than two columns)."""
+    if ratio is not None and sim.shape[2] >= 2:
+        top = sim.topk(2, dim=2)
+        return top.values[..., 0], top.indices[..., 0], top.values[..., 1]
+    best, fwd = sim.max(dim=2)
+    return best, fwd, None
+
+
 def _mnn_chunk(
     q_desc: torch.Tensor,
     q_kp: torch.Tensor,
@@ -63,23 +82,12 @@ def _mnn_chunk(
 
     Returns ``(ref_in_chunk, q_idx, r_idx, similarity)`` of the accepted pairs, sorted by reference.
     """
-    b = desc.shape[0]
     sim = torch.matmul(q_desc, desc.transpose(1, 2))  # (b, N, M)
     if window is not None:
-        # squared distances in one fused kernel: |q|^2 + |r|^2 - 2 q.r
-        d2 = torch.baddbmm(
-            q_sqnorm[None, :, None] + sqnorm[:, None, :], q_kp[None].expand(b, -1, -1), kp.transpose(1, 2),
-            alpha=-2.0,
-        )
-        sim.masked_fill_(d2 >= window * window, _NEG)  # in place; padding lies far outside every window
+        _mask_window_(sim, q_kp, q_sqnorm, kp, sqnorm, window)  # padding lies far outside every window
     else:
         sim.masked_fill_(~valid[:, None, :], _NEG)
-    second = None
-    if ratio is not None and sim.shape[2] >= 2:
-        top = sim.topk(2, dim=2)
-        best, fwd, second = top.values[..., 0], top.indices[..., 0], top.values[..., 1]
-    else:
-        best, fwd = sim.max(dim=2)
+    best, fwd, second = _row_best(sim, ratio)
     col_best = sim.amax(dim=1)  # (b, M): best similarity of each reference keypoint over the query
     ok = (best >= torch.gather(col_best, 1, fwd)) & _accept(best, second, ratio, min_sim)
     bb, qq = ok.nonzero(as_tuple=True)
@@ -146,14 +154,13 @@ def _mnn_banded(
     n = q_desc.shape[0]
     per = max(1, chunk_elems // max(1, n * m))
     q_sqnorm = (q_kp.double() ** 2).sum(-1).float()
-    rows = pad["kp"][..., 1].contiguous()
     bands = [(qi, q_desc[qi], q_kp[qi], q_sqnorm[qi], q_kp[qi, 1].min(), q_kp[qi, 1].max())
              for qi in _row_bands(q_kp[:, 1], window)]
-    reach, w2 = window + 1.0, window * window
+    reach = window + 1.0
     out_q, out_b, out_r, out_s = [], [], [], []
     for s0 in range(0, b_all, per):
         sl = slice(s0, s0 + per)
-        desc, kp, sqnorm, rows_c = pad["desc"][sl], pad["kp"][sl], pad["sqnorm"][sl], rows[sl]
+        desc, kp, sqnorm, rows_c = pad["desc"][sl], pad["kp"][sl], pad["sqnorm"][sl], pad["rows"][sl]
         b = desc.shape[0]
         best = torch.full((b, n), _NEG)
         second = torch.full((b, n), _NEG) if ratio is not None else None
@@ -165,14 +172,10 @@ def _mnn_banded(
             if hi <= lo:
                 continue
             sim = torch.matmul(qd, desc[:, lo:hi].transpose(1, 2))  # (b, n_band, hi - lo)
-            d2 = torch.baddbmm(qs[None, :, None] + sqnorm[:, None, lo:hi], qk[None].expand(b, -1, -1),
-                               kp[:, lo:hi].transpose(1, 2), alpha=-2.0)
-            sim.masked_fill_(d2 >= w2, _NEG)
-            if second is not None and sim.shape[2] >= 2:
-                top = sim.topk(2, dim=2)
-                best[:, qi], f, second[:, qi] = top.values[..., 0], top.indices[..., 0], top.values[..., 1]
-            else:
-                best[:, qi], f = sim.max(dim=2)
+            _mask_window_(sim, qk, qs, kp[:, lo:hi], sqnorm[:, lo:hi], window)
+            best[:, qi], f, s2 = _row_best(sim, ratio)
+            if s2 is not None:
+                second[:, qi] = s2
             fwd[:, qi] = f + lo
             col_best[:, lo:hi] = torch.maximum(col_best[:, lo:hi], sim.amax(dim=1))
         ok = (best >= torch.gather(col_best, 1, fwd)) & _accept(best, second, ratio, min_sim)

@@ -67,7 +67,7 @@ from pixie.pipeline.query import QueryCrop, bbox_from_mask, check_bbox, check_qu
 from pixie.references.set import ReferenceSet, add_features
 from pixie.cues.refine import aligned_correspondences, render_in_crop
 from pixie.geometry.render import Renderer
-from pixie.cues.edge_align import align, align_kwargs, edge_fit, flip_twins, photo_edges
+from pixie.cues.edge_align import align, align_kwargs, edge_fit, flip_twins, photo_edges, photo_edges_kwargs
 from pixie.cues.edges import EdgeQuery
 from pixie.cues.parts import (complement_renderers, judge_parts, part_renderers, part_support, report_kwargs,
                               robust_part_fit)
@@ -606,8 +606,7 @@ class PoseEstimator:
         ac = self.cfg.align
         ren = self._align_renderer or Renderer(self.refs.mesh, smooth_normals=True)
         if photo or q.photo_edges is None:
-            q.photo_edges = photo_edges(q.image, q.K, q.box, q.mask, object_px=ac.object_px, canny_low=ac.canny_low,
-                                        canny_high=ac.canny_high)
+            q.photo_edges = photo_edges(q.image, q.K, q.box, q.mask, **photo_edges_kwargs(ac))
         return ren, q.photo_edges, align_kwargs(ac) | {"hull": self.box_points}
 
     def align_stage(self, q: Query, hyps: list[Hypothesis]) -> list[Hypothesis]:

@@ -183,16 +183,15 @@ def edge_map(depth: np.ndarray, normals: np.ndarray, crease_deg: float = 35.0,
     mask = depth > 0
     H, W = mask.shape
     rows, cols = np.flatnonzero(mask.any(axis=1)), np.flatnonzero(mask.any(axis=0))
+    out = (np.zeros((H, W), bool), np.zeros((H, W), bool), np.zeros((H, W), np.float32), np.zeros((H, W), np.float32))
     if len(rows) == 0:
-        return (np.zeros((H, W), bool), np.zeros((H, W), bool), np.zeros((H, W), np.float32),
-                np.zeros((H, W), np.float32))
+        return out
     m = _EDGE_MARGIN
     y0, y1 = max(rows[0] - m, 0), min(rows[-1] + m + 1, H)
     x0, x1 = max(cols[0] - m, 0), min(cols[-1] + m + 1, W)
     if (y1 - y0) * (x1 - x0) >= H * W:
         return _edge_map_full(depth, normals, crease_deg, depth_jump)
     sub = _edge_map_full(depth[y0:y1, x0:x1], normals[y0:y1, x0:x1], crease_deg, depth_jump)
-    out = (np.zeros((H, W), bool), np.zeros((H, W), bool), np.zeros((H, W), np.float32), np.zeros((H, W), np.float32))
     for o, a in zip(out, sub):
         o[y0:y1, x0:x1] = a
     return out
