@@ -143,12 +143,7 @@ def rejudge(parts: list[dict], cfg: PixieConfig, params: tuple) -> list[str]:
     """Verdicts of stored part records under other (flag_below, colour_weight, revealed_weight, shift_weight)
     (:func:`judge_parts` on the records)."""
     _, judge, _ = _kw(cfg, *params)
-    ps = [PartSupport(index=p["index"], name=p["name"], support=p["support"], relative=p["relative"],
-                      shifted=p["shifted_support"], shift_px=p["shift_px"], visible=p["visible"],
-                      n_points=p["n_points"], colour=p.get("colour", 1.0),
-                      exclusive=p.get("exclusive_support", 0.0), n_exclusive=p.get("n_exclusive", 0),
-                      revealed=p.get("revealed_support", 0.0), n_revealed=p.get("n_revealed", 0),
-                      exclusive_shifted=p.get("exclusive_shifted_support", 0.0)) for p in parts]
+    ps = [PartSupport.from_dict(p) for p in parts]
     return [p.verdict for p in judge_parts(ps, **judge)]
 
 

@@ -25,36 +25,19 @@ import json
 import time
 from pathlib import Path
 
-import cv2
 import numpy as np
 
 import common as L  # noqa: E402  (bench/common.py: targets, object cache, presets)
 
 REPO = L.REPO
 
-from pixie.geometry.camera import make_T  # noqa: E402
 from pixie.config import PixieConfig  # noqa: E402
 from pixie.cues.edge_align import align, align_kwargs, photo_edges, photo_edges_kwargs  # noqa: E402
 from pixie.pose.solve import depth_from_box, depth_from_visible_sides  # noqa: E402
 from pixie.pipeline.query import check_bbox  # noqa: E402
+from pixie.synth.e2e import turned_pose  # noqa: E402
 
 NAMES = {1: "ape", 5: "can", 6: "cat", 8: "driller", 9: "duck", 10: "eggbox", 11: "glue", 12: "holepuncher"}
-
-
-def perturbed(T: np.ndarray, K: np.ndarray, centre: np.ndarray, deg: float, dz: float, shift_px: float,
-              rng: np.random.Generator) -> np.ndarray:
-    """``T`` turned by ``deg`` about a random axis through the object centre, depth x (1 ± dz), centre shifted."""
-    axis = rng.normal(size=3)
-    R = cv2.Rodrigues(axis / np.linalg.norm(axis) * np.radians(deg))[0]
-    c = T[:3, :3] @ centre + T[:3, 3]
-    sign = 1.0 if rng.random() < 0.5 else -1.0
-    phi = rng.uniform(0, 2 * np.pi)
-    u = K[0, 0] * c[0] / c[2] + K[0, 2] + shift_px * np.cos(phi)
-    v = K[1, 1] * c[1] / c[2] + K[1, 2] + shift_px * np.sin(phi)
-    z = c[2] * (1.0 + sign * dz)
-    cn = np.array([(u - K[0, 2]) / K[0, 0] * z, (v - K[1, 2]) / K[1, 1] * z, z])
-    R0 = R @ T[:3, :3]
-    return make_T(R0, cn - R0 @ centre)
 
 
 def preset_kwargs(preset: str) -> tuple[dict, dict]:
@@ -121,7 +104,7 @@ def main(argv=None) -> int:
         for deg in degs:
             for dz in dzs:
                 rng = np.random.default_rng([t.im_id, t.obj_id, int(deg * 10), int(dz * 1000)])
-                T0 = perturbed(g.T_cam_from_obj, K, mesh.center, deg, dz, args.shift_px, rng)
+                T0 = turned_pose(g.T_cam_from_obj, K, mesh.center, deg, dz, args.shift_px, rng, signed_dz=True)
                 Tb = depth_from_box(T0, K, mesh.hull_vertices, box)
                 t1 = time.perf_counter()
                 res = align(renderer, pe, T0, hull=mesh.hull_vertices, **al_kw)

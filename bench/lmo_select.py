@@ -11,10 +11,16 @@ a same-orientation edge), and the pose errors; bench/lmo_pipeline.py).
 * **Selection.** For every ``w_fit`` on a fixed grid, pick per target the candidate with the highest
   ``fused + w_fit * fit``. Rule: on the fitting half (targets in even positions of the run's order) the ``w_fit``
   with the most ADD(-S)<0.1d hits wins; ties go to the smaller weight. Reported on the other half (odd positions).
-* **Confidence.** A logistic model ``p = 1 / (1 + exp(-(a + b * fit + c * margin)))`` of the run's chosen pose
-  (``fit`` its aligned fit, ``margin`` its score minus the best distinct alternative's, as the estimator computes
-  them) fitted by Newton's method on the fitting half, predicting ADD(-S)<0.1d of the chosen pose; AUC and a reliability table (confidence bin -> share correct) on the
-  other half. The coefficients are printed for ``config.align`` (``conf_a``, ``conf_b``, ``conf_c``).
+* **Confidence.** A logistic model ``p = 1 / (1 + exp(-(c0 + c1 * x1 + ...)))`` of the run's chosen pose over
+  terms the estimator has for it (``pixie.config.CONFIDENCE_TERMS``: ``fit`` its aligned fit, ``margin`` its score
+  minus the best distinct alternative's, ``size`` its projected diameter in photo px / 100, the fit's and the shape
+  stage's other terms; not ``fit_visible``, which measures how tight the given box is as much as the pose, unless
+  ``--with-visible``), predicting ADD(-S)<0.1d of the chosen pose. Rule for the terms: forward selection on the
+  fitting half alone, each step adding the term that most raises the 5-fold cross-validated AUC there (standardised
+  terms, L2 1.0), stopping when no term adds 0.005; the model is then fitted on the whole fitting half (Newton) and
+  its AUC and a reliability table (confidence bin -> share correct) reported on the other half, beside the
+  ``[fit, margin]`` model refitted the same way. The coefficients are printed in the terms' own units for
+  ``config.align.confidence`` / ``confidence_terms``.
 """
 
 from __future__ import annotations
@@ -24,6 +30,11 @@ import json
 from pathlib import Path
 
 import numpy as np
+
+from common import DEFAULT_DATASET  # noqa: E402  (bench/common.py: puts src/ on the path)
+
+from pixie.config import CONFIDENCE_TERMS  # noqa: E402
+from pixie.cues.edge_align import confidence_size  # noqa: E402
 
 GRID = (0.0, 0.25, 0.5, 1.0, 2.0, 4.0, 8.0)
 
@@ -61,10 +72,62 @@ def logistic_fit(X: np.ndarray, y: np.ndarray, l2: float = 1e-3, iters: int = 50
     return w
 
 
+def object_sizes(dataset: Path) -> tuple[dict[int, float], float]:
+    """Each object's diameter (mm, the BOP models' models_info.json) and the dataset's focal length (px)."""
+    info = json.loads((dataset / "models" / "models_info.json").read_text())
+    cam = json.loads((dataset / "camera.json").read_text())
+    return {int(k): float(v["diameter"]) for k, v in info.items()}, float(cam["fx"])
+
+
+def conf_inputs(r: dict, diam: dict[int, float], focal: float) -> dict[str, float]:
+    """The terms of the run's chosen pose the calibrated confidence may use (``CONFIDENCE_TERMS``), as the estimator
+    computes them: its recorded terms, ``margin`` (its score minus the best distinct alternative's) and ``size``
+    (projected diameter / 100 px, clipped as the estimator clips it; from the pose, the object's diameter and the focal length when not recorded)."""
+    h = r["hyps"]
+    x = {k: float(v) for k, v in (h[0]["terms"] if h else {}).items() if v is not None}
+    x["margin"] = (h[0]["score"] - (h[1]["score"] if len(h) > 1 else 0.0)) if h else 0.0
+    if "size" not in x:
+        T = np.asarray(r["T"], np.float64)
+        x["size"] = confidence_size(focal * diam[int(r["obj_id"])] / max(T[2, 3], 1e-9))
+    return x
+
+
+def _matrix(xs: list[dict], ks: list[str]) -> np.ndarray:
+    return np.array([[x.get(k, 0.0) for k in ks] for x in xs], np.float64).reshape(len(xs), len(ks))
+
+
+def cv_auc(xs: list[dict], y: np.ndarray, ks: list[str], folds: int = 5) -> float:
+    """Cross-validated AUC of a logistic model on terms ``ks`` (standardised; folds by position)."""
+    X = _matrix(xs, ks)
+    X = (X - X.mean(0)) / (X.std(0) + 1e-9)
+    fold = np.arange(len(y)) % folds
+    pred = np.zeros(len(y))
+    for k in range(folds):
+        te = fold == k
+        w = logistic_fit(X[~te], y[~te].astype(float), l2=1.0)
+        pred[te] = w[0] + X[te] @ w[1:]
+    return auc(pred, y)
+
+
+def fit_raw(xs: list[dict], y: np.ndarray, ks: list[str]) -> list[float]:
+    """Logistic coefficients (intercept first) in the terms' own units, fitted on standardised terms (L2 1.0)."""
+    X = _matrix(xs, ks)
+    mu, sd = X.mean(0), X.std(0) + 1e-9
+    w = logistic_fit((X - mu) / sd, y.astype(float), l2=1.0)
+    b = w[1:] / sd
+    return [float(w[0] - (b * mu).sum())] + [float(v) for v in b]
+
+
+def predict(xs: list[dict], ks: list[str], coef: list[float]) -> np.ndarray:
+    return 1.0 / (1.0 + np.exp(-(coef[0] + _matrix(xs, ks) @ np.asarray(coef[1:]))))
+
+
 def main(argv=None) -> int:
     ap = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
     ap.add_argument("targets", type=Path)
     ap.add_argument("--out", type=Path, default=Path("out/bench/lmo_select.json"))
+    ap.add_argument("--with-visible", action="store_true", help="let the confidence use fit_visible too")
+    ap.add_argument("--dataset", type=Path, default=DEFAULT_DATASET, help="for the objects' diameters and the cameras")
     args = ap.parse_args(argv)
     recs = load(args.targets)
     fit_half, test_half = recs[0::2], recs[1::2]
@@ -84,24 +147,34 @@ def main(argv=None) -> int:
     print(f"chosen w_fit = {best:g} (rule: most hits on the fitting half, then the smaller weight); report half: "
           f"{table[best][1]}/{len(test_half)}; the run's own choice {shipped}/{len(test_half)}; any candidate {ceiling}")
 
-    def feats(rs):
-        """The run's chosen pose: its aligned fit and its margin over the best distinct alternative (as the
-        estimator computes them), and whether it is right."""
-        X, y = [], []
-        for r in rs:
-            h = r["hyps"]
-            fit = (h[0]["terms"].get("fit") if h else None) or 0.0
-            margin = (h[0]["score"] - (h[1]["score"] if len(h) > 1 else 0.0)) if h else 0.0
-            X.append([fit, margin])
-            y.append(bool(r["add_ok"]))
-        return np.array(X), np.array(y)
-
-    Xf, yf = feats(fit_half)
-    Xt, yt = feats(test_half)
-    w = logistic_fit(Xf, yf.astype(float))
-    pt = 1 / (1 + np.exp(-(w[0] + Xt @ w[1:])))
-    print(f"confidence = logistic({w[0]:.3f} + {w[1]:.3f} * fit + {w[2]:.3f} * margin); AUC on the report half "
-          f"{auc(pt, yt):.3f} (fit alone {auc(Xt[:, 0], yt):.3f}, margin alone {auc(Xt[:, 1], yt):.3f})")
+    diam, focal = object_sizes(args.dataset)
+    xf, yf = [conf_inputs(r, diam, focal) for r in fit_half], np.array([bool(r["add_ok"]) for r in fit_half])
+    xt, yt = [conf_inputs(r, diam, focal) for r in test_half], np.array([bool(r["add_ok"]) for r in test_half])
+    # fit_visible (the share of the pose's contour inside the given box) is left out: it measures how tight the box is
+    # as much as the pose, and LM-O's boxes are cut from its GT masks (--with-visible puts it back)
+    names = [k for k in CONFIDENCE_TERMS if all(k in x for x in xf + xt) and (args.with_visible or k != "fit_visible")]
+    chosen, best_cv = [], 0.0
+    while True:
+        trial = [(cv_auc(xf, yf, chosen + [k]), k) for k in names if k not in chosen]
+        if not trial:
+            break
+        a, k = max(trial)
+        if a < best_cv + 0.005:
+            break
+        chosen, best_cv = chosen + [k], a
+        print(f"  + {k}: fitting-half 5-fold AUC {a:.3f}")
+    print("| terms | AUC report half | coefficients (intercept first) |")
+    print("|---|---|---|")
+    models = {}
+    for ks in (["fit", "margin"], chosen):
+        coef = fit_raw(xf, yf, ks)
+        pt = predict(xt, ks, coef)
+        models[",".join(ks)] = {"terms": ks, "coef": coef, "auc_report_half": auc(pt, yt)}
+        print(f"| {', '.join(ks)} | {auc(pt, yt):.3f} | {[round(c, 3) for c in coef]} |")
+    for k in names:
+        print(f"  {k} alone: AUC report half {auc(np.array([x[k] for x in xt]), yt):.3f}")
+    pt = predict(xt, chosen, models[",".join(chosen)]["coef"])
+    print(f"chosen: confidence_terms {chosen}, confidence {[round(c, 3) for c in models[','.join(chosen)]['coef']]}")
     print("| confidence | n | share correct |")
     print("|---|---|---|")
     rel = []
@@ -111,8 +184,7 @@ def main(argv=None) -> int:
         print(f"| {lo:.1f}-{min(hi, 1.0):.1f} | {int(sel.sum())} | {yt[sel].mean() if sel.any() else float('nan'):.2f} |")
     args.out.parent.mkdir(parents=True, exist_ok=True)
     args.out.write_text(json.dumps({"targets": str(args.targets), "grid": {str(k): v for k, v in table.items()},
-                                    "w_fit": best, "confidence": {"a": w[0], "b": w[1], "c": w[2],
-                                                                   "auc_report_half": auc(pt, yt)},
+                                    "w_fit": best, "confidence": models, "chosen_terms": chosen,
                                     "reliability": rel}, indent=1))
     return 0
 

@@ -17,8 +17,9 @@ import numpy as np
 
 sys.path.insert(0, "bench")
 import common as L  # noqa: E402
-from pixie.geometry.camera import crop_intrinsics, make_T  # noqa: E402
+from pixie.geometry.camera import crop_intrinsics  # noqa: E402
 from pixie.pipeline.query import check_bbox, square_crop  # noqa: E402
+from pixie.synth.e2e import turned_pose  # noqa: E402
 
 
 def sh_basis(n):
@@ -68,15 +69,6 @@ def shade_terms(renderer, crop, Kc, allowed, T, size=256):
     return out
 
 
-def rotated(T, centre, deg, rng):
-    a = rng.normal(size=3)
-    a /= np.linalg.norm(a)
-    R = cv2.Rodrigues(a * np.radians(deg))[0]
-    c = T[:3, :3] @ centre + T[:3, 3]
-    R0 = R @ T[:3, :3]
-    return make_T(R0, c - R0 @ centre)
-
-
 if __name__ == "__main__":
     ds = L.BopDataset(L.DEFAULT_DATASET)
     objects = L.ObjectCache(ds)
@@ -92,7 +84,7 @@ if __name__ == "__main__":
         rng = np.random.default_rng([t.im_id, t.obj_id])
         row = {"obj": t.obj_id, "gt": shade_terms(ren, crop, Kc, allowed, g.T_cam_from_obj)}
         for deg in (3, 6, 10, 20):
-            row[deg] = [shade_terms(ren, crop, Kc, allowed, rotated(g.T_cam_from_obj, ctr, deg, rng)) for _ in range(4)]
+            row[deg] = [shade_terms(ren, crop, Kc, allowed, turned_pose(g.T_cam_from_obj, K, ctr, deg, 0.0, 0.0, rng)) for _ in range(4)]
         rows.append(row)
     pickle.dump(rows, open("out/bench/shade_probe.pkl", "wb"))
     for k in ("sh4_r2", "sh9_r2", "sh4_rms", "sh9_rms"):

@@ -64,3 +64,18 @@ def test_shape_section_is_validated_like_every_other(override):
 
     with pytest.raises(ConfigError, match=override.split("=")[0].replace(".", r"\.")):
         PixieConfig().apply_overrides([override])
+
+
+def test_confidence_terms_and_coefficients_must_agree():
+    """align.confidence holds the intercept and one coefficient per align.confidence_terms name; a mismatch or an
+    unknown term is refused naming the keys, whichever order a file or the overrides set them in."""
+    cfg = PixieConfig.from_preset("default")
+    assert len(cfg.align.confidence) == 1 + len(cfg.align.confidence_terms)
+    n = len(cfg.align.confidence)
+    with pytest.raises(ConfigError, match=f"align.confidence has {n} coefficients"):
+        PixieConfig.from_preset("default").apply_overrides(["align.confidence_terms=[fit,margin,size,edge]"])
+    ok = PixieConfig.from_dict({"align": {"confidence": [1, 2, 3, 4], "confidence_terms": ["fit", "margin", "size"]}})
+    assert ok.align.confidence_terms == ["fit", "margin", "size"]
+    with pytest.raises(ConfigError, match="unknown 'depth'"):
+        PixieConfig().apply_overrides(["align.confidence_terms=[fit,depth]"])
+    assert PixieConfig().apply_overrides(["align.confidence=[]"]).align.confidence == []  # the uncalibrated ratio

@@ -81,6 +81,32 @@ def test_proposals_find_the_part_among_distractors_and_clutter(query_est, proc_m
     assert best >= 2 and top3 >= 3, (best, top3)
 
 
+def test_a_proposal_stands_for_its_pose(query_est, proc_mesh, scene_parts, line2d_cache):
+    """TemplateDetector.pose: the pose a proposal's template stands for projects onto the proposal's own box, and for
+    a proposal on the part it is a coarse start near the truth (views, rolls and scales are steps apart); aligned from
+    it (estimate_from_prior), the part's pose is found. Measured (these 4 seeds, session 14): 4 proposals on the part,
+    3 of them 6–11° / 4–17 % depth off, aligned to 0.35–0.59°; the fourth a silhouette twin 142° off. Asserted with
+    one proposal of margin."""
+    det = TemplateDetector(ContourTemplates.from_arrays(query_est.refs.templates), K, proc_mesh.diameter,
+                           distance_mm=distance(proc_mesh), cache_dir=line2d_cache / "pixie" / "line2d")
+    rot, dz, aligned = [], [], []
+    for seed in range(4):
+        img, T = scene(proc_mesh, scene_parts, seed)
+        gt = projected_box(T, K, proc_mesh.hull_vertices)
+        for p in det.propose(img, top_k=3):
+            T0 = det.pose(p, K, proc_mesh.center, proc_mesh.hull_vertices)
+            assert box_iou(projected_box(T0, K, proc_mesh.hull_vertices), p.box_xyxy) > 0.8
+            if box_iou(p.box_xyxy, gt) >= 0.7:
+                rot.append(rotation_angle_deg(T0[:3, :3], T[:3, :3]))
+                dz.append(abs(T0[2, 3] / T[2, 3] - 1))
+                res = query_est.estimate_from_prior(img, K, T0)
+                aligned.append(rotation_angle_deg(res.T_cam_from_obj[:3, :3], T[:3, :3]))
+    print(rot, dz, aligned)
+    near = np.array(rot) < 15.0
+    assert len(rot) >= 3 and near.sum() >= 2 and np.median(np.array(dz)[near]) < 0.1, (rot, dz)
+    assert np.median(np.array(aligned)[near]) < 3.0, aligned
+
+
 def test_find_gives_the_pose_or_not_found(query_est, proc_mesh, scene_parts, line2d_cache):
     img, T = scene(proc_mesh, scene_parts, 1)
     kw = dict(top_k=1, distance_mm=distance(proc_mesh), cache_dir=line2d_cache / "pixie" / "line2d")

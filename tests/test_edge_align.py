@@ -172,3 +172,24 @@ def test_alignment_on_real_lmo_crops_returns_finite_poses(lmo_dataset, lmo_meshe
     assert np.all(np.isfinite(res.T_cam_from_obj))
     assert 0.0 <= res.fit.share <= 1.0
     assert rotation_angle_deg(res.T_cam_from_obj[:3, :3], g.T_cam_from_obj[:3, :3]) < 20.0
+
+
+def test_calibrated_confidence_is_the_logistic_of_the_named_terms():
+    """logistic(c0 + c1 * x1 + ...) over config.align.confidence_terms, computed by hand; a term the pose lacks and
+    coefficients that do not match the terms are refused naming the keys."""
+    import math
+
+    from pixie.config import PixieConfig
+    from pixie.cues.edge_align import calibrated_confidence
+    from pixie.errors import ConfigError
+
+    ac = PixieConfig.from_dict({"align": {"confidence": [-1.0, 2.0, 0.5, -3.0],
+                                          "confidence_terms": ["fit", "size", "margin"]}}).align
+    x = {"fit": 0.4, "size": 1.2, "margin": 0.1, "edge": 9.0}
+    z = -1.0 + 2.0 * 0.4 + 0.5 * 1.2 - 3.0 * 0.1
+    assert calibrated_confidence(ac, x) == pytest.approx(1.0 / (1.0 + math.exp(-z)), abs=1e-12)
+    with pytest.raises(ConfigError, match="uses size"):
+        calibrated_confidence(ac, {"fit": 0.4, "margin": 0.1})
+    ac.confidence = [1.0, 2.0]
+    with pytest.raises(ConfigError, match="2 coefficients for 3"):
+        calibrated_confidence(ac, x)

@@ -299,3 +299,17 @@ def test_verdicts_are_relative_to_the_assembly_so_a_textured_photo_flags_nothing
     # one part without edges and with mixed colours among uniform ones: that one is missing
     one = judge_parts(parts([0.95, 0.97, 0.3, 0.96], [0.8, 0.85, 0.1, 0.82]), **JUDGE)
     assert [p.verdict for p in one] == ["present", "present", "missing", "present"]
+
+
+def test_part_support_record_round_trip():
+    """A part record (the result JSON's) reads back into the same PartSupport: benches re-judge stored records."""
+    from pixie.cues.parts import PartSupport
+
+    p = PartSupport(index=2, name="brick_2", support=0.4321, relative=0.61, shifted=0.7, shift_px=3.25, visible=0.8,
+                    n_points=57, colour=1.3, exclusive=0.2, n_exclusive=11, revealed=0.35, n_revealed=9,
+                    exclusive_shifted=0.5, verdict="displaced")
+    d = p.as_dict()
+    assert PartSupport.from_dict(d).as_dict() == d
+    old = {k: v for k, v in d.items() if k not in ("colour", "exclusive_support", "n_exclusive")}  # an older record
+    q = PartSupport.from_dict(old)
+    assert q.colour == 1.0 and q.exclusive == 0.0 and q.n_exclusive == 0 and q.support == d["support"]

@@ -8,6 +8,9 @@ Presets (``src/pixie/configs/<name>.yaml``: ``fast``, ``default``, ``paper``) ar
 sections layered on top of the dataclass defaults; :meth:`PixieConfig.from_preset` loads one and every
 ``pixie`` command starts from ``--preset default``. The dataclass defaults themselves (``PixieConfig()``) are
 the paper's settings plus pixie's extras and are not a preset.
+
+Longer than 500 lines on purpose: it is the one validated config object, and each key keeps its range, choices and
+the measurement behind its default next to it; split, a key's check would sit in another file than its default.
 """
 
 from __future__ import annotations
@@ -37,7 +40,9 @@ CHOICES: dict[str, tuple[str, ...]] = {
 }
 # Lists of numbers that may be empty or negative, and allowed list lengths.
 SIGNED_LISTS = {"align.confidence"}
-LIST_LENGTHS = {"align.confidence": (0, 3)}
+# What the calibrated confidence may be computed from (config.align.confidence_terms; pixie.pipeline.estimator).
+CONFIDENCE_TERMS = ("fit", "fit_silhouette", "fit_visible", "fit_dist", "edge", "region", "fused", "margin", "size")
+LIST_LENGTHS = {"align.confidence": tuple(range(0, 12))}
 # (low, high, low_inclusive): numbers outside are refused; None bounds are open.
 RANGES: dict[str, tuple[float | None, float | None, bool]] = {
     "refs.n_fibonacci": (0, 100_000, True),
@@ -353,10 +358,11 @@ class AlignConfig(_Section):
     canny_high: float = 12.0
     fit_px: float = 1.5  # aligned fit: a contour point is supported by an edge this close (crop px)
     w_fit: float = 1.0  # ranking score = the shape stage's fused score + w_fit * aligned fit
-    # calibrated confidence = logistic(a + b * fit + c * margin) of the chosen pose (margin: its score minus the best
-    # distinct alternative's), fitted by bench/lmo_select.py on the even half of the full LM-O dev run s12_full716
-    # (AUC 0.79 on the odd half, bench/RESULTS.md "Session 12"); [] = the uncalibrated ratio
-    confidence: list[float] = field(default_factory=lambda: [-4.351, 5.518, 4.547])
+    # calibrated confidence = logistic(c0 + c1 * term1 + ...) of the chosen pose over confidence_terms (CONFIDENCE_TERMS;
+    # size = projected diameter / 100 px, clipped), fitted by bench/lmo_select.py on the even half of s14_full716: AUC
+    # 0.806 on the odd half (bench/RESULTS.md "Session 14"); [] = the uncalibrated ratio
+    confidence: list[float] = field(default_factory=lambda: [-6.437, 5.451, 2.03, 4.274])
+    confidence_terms: list[str] = field(default_factory=lambda: ["fit", "size", "margin"])
     min_fit: float = 0.05  # a chosen pose with less aligned fit than this is flagged failed ("no edge support")
     prior_margin: float = 0.25  # estimate_from_prior without a box: the prior's box grown by this share of its size
     reset_fit: float = 0.3  # pixie track: a refined prior with less aligned fit is lost -> full search (bench/track.py)
@@ -365,6 +371,7 @@ class AlignConfig(_Section):
 
 _SECTION_NAMES[AlignConfig] = "align"
 CHOICES["align.search"] = ("normal", "nearest")
+CHOICES["align.confidence_terms"] = CONFIDENCE_TERMS
 RANGES.update({"align.min_contrast": (0, 1, True), "align.w_box": (0, None, True), "align.box_taper": (0, 1, True), "align.hypotheses": (0, 64, True), "align.flips": (0, 64, True), "align.object_px": (32, 2048, True),
                "align.iters": (1, 100, True), "align.crease_weight": (0, 10, True), "align.rot_prior": (0, None, True),
                "align.canny_low": (0, None, True), "align.canny_high": (0, None, True), "align.fit_px": (0, 100, False),
@@ -446,6 +453,16 @@ class PixieConfig:
                 raise ConfigError(f"config section {section!r} must be a mapping of key: value, got {values!r}")
             for key, value in values.items():
                 self.set(f"{section}.{key}", value)
+        return self.check()
+
+    def check(self) -> "PixieConfig":
+        """Checks between keys (each key alone is checked when set): the calibrated confidence has one coefficient
+        per term plus the intercept."""
+        ac = self.align
+        if ac.confidence and len(ac.confidence) != 1 + len(ac.confidence_terms):
+            raise ConfigError(f"align.confidence has {len(ac.confidence)} coefficients but align.confidence_terms names "
+                              f"{len(ac.confidence_terms)} terms: give the intercept and one coefficient per term "
+                              f"({1 + len(ac.confidence_terms)} numbers), or [] for the uncalibrated ratio")
         return self
 
     @classmethod
@@ -492,4 +509,4 @@ class PixieConfig:
     def apply_overrides(self, overrides: list[str] | None) -> "PixieConfig":
         for item in overrides or []:
             self.set(*parse_override(item))
-        return self
+        return self.check()

@@ -29,8 +29,10 @@ import cv2
 import numpy as np
 
 from pixie.errors import PixieError
+from pixie.geometry.camera import transform_points
+from pixie.geometry.rotations import rotation_between
 from pixie.paths import write_atomic
-from pixie.pose.solve import box_iou
+from pixie.pose.solve import box_iou, projected_box
 from pixie.references.templates import ContourTemplates
 
 __all__ = ["Proposal", "TemplateDetector", "linemod_available"]
@@ -196,6 +198,39 @@ class TemplateDetector:
                       f"            features: {flat[at:at + n]}"]  # a flow sequence of [x, y, label]
             at += n
         return lines
+
+    def pose(self, p: Proposal, K: np.ndarray, center: np.ndarray, points: np.ndarray | None = None) -> np.ndarray:
+        """The 6D pose (T_cam_from_obj, mm) a proposal's template stands for in a photo with intrinsics ``K``.
+
+        The template's view rolled by the proposal's angle, turned so that the object centre ``center`` (object
+        frame, mm; the point the template cameras look at) lies on the viewing ray of ``p.centre``, at the distance
+        the proposal's scale gives (the template camera's distance x photo focal / template focal / scale). Off the
+        optical axis a 2D template stands for a farther object (the image of an object there is stretched by up to
+        1 / cos² of the ray's angle): with ``points`` (e.g. the mesh's hull vertices) the distance is then set so
+        that their projected box has the proposal box's area. A coarse start (views ~7° apart, rolls ``roll_deg``,
+        scales ``scale_step``) for the edge alignment.
+        """
+        K = np.asarray(K, np.float64)
+        T0 = self.tpl.pose(p.view, p.angle)
+        center = np.asarray(center, np.float64)
+        z_t = float((T0[:3, :3] @ center + T0[:3, 3])[2])  # the template camera's distance to the centre
+        dist = z_t * float(K[0, 0]) / (float(self.tpl.K[0, 0]) * p.scale)
+        ray = np.linalg.solve(K, np.array([p.centre[0], p.centre[1], 1.0]))
+        ray /= np.linalg.norm(ray)
+        R = rotation_between(np.array([0.0, 0.0, 1.0]), ray) @ T0[:3, :3]
+        T = np.eye(4)
+        T[:3, :3] = R
+
+        def area(b: np.ndarray) -> float:
+            return float(max(b[2] - b[0], 1e-9) * max(b[3] - b[1], 1e-9))
+
+        for _ in range(3 if points is not None else 0):
+            T[:3, 3] = dist * ray - R @ center
+            if (transform_points(T, points)[:, 2] <= 0).any():
+                break
+            dist *= np.sqrt(area(projected_box(T, K, points)) / area(p.box_xyxy))
+        T[:3, 3] = dist * ray - R @ center
+        return T
 
     @property
     def n_templates(self) -> int:

@@ -40,12 +40,13 @@ import numpy as np
 
 from pixie.cues.edge_photo import PhotoEdges, photo_edges
 from pixie.cues.region import band, posterior
+from pixie.errors import ConfigError
 from pixie.geometry.camera import make_T
 from pixie.geometry.render import Renderer
 from pixie.geometry.rotations import rodrigues
 from pixie.references.templates import CREASE, SILHOUETTE, view_points
 
-__all__ = ["PhotoEdges", "AlignResult", "EdgeFit", "photo_edges", "model_points", "align", "align_kwargs", "photo_edges_kwargs", "edge_fit",
+__all__ = ["PhotoEdges", "AlignResult", "EdgeFit", "photo_edges", "model_points", "align", "align_kwargs", "photo_edges_kwargs", "calibrated_confidence", "confidence_size", "edge_fit",
            "edge_distances", "flip_twins"]
 
 
@@ -489,6 +490,36 @@ def align_kwargs(ac) -> dict:
     return dict(schedule=tuple(ac.schedule), iters=ac.iters, crease_weight=ac.crease_weight, rot_prior=ac.rot_prior,
                 fit_px=ac.fit_px, search=ac.search, min_contrast=ac.min_contrast, w_box=ac.w_box,
                 box_taper=ac.box_taper, w_matches=ac.w_matches, match_px=ac.match_px)
+
+
+# The confidence's ``size`` term: the object's projected diameter / 100 px, clipped to what LM-O dev covers (its 1st
+# to 99th percentile, 43-199 px): outside it the calibration says nothing, and a linear term would extrapolate.
+SIZE_RANGE = (0.4, 2.0)
+
+
+def confidence_size(diameter_px: float) -> float:
+    """The calibrated confidence's ``size`` term of an object whose diameter projects to ``diameter_px`` photo px."""
+    return float(np.clip(diameter_px / 100.0, *SIZE_RANGE))
+
+
+def calibrated_confidence(ac, inputs: dict[str, float]) -> float:
+    """``logistic(c0 + c1 * x1 + ...)``: ``config.align.confidence`` (intercept, then one coefficient per name of
+    ``confidence_terms``) applied to a pose's ``inputs`` (its terms by name: fit, margin, size, ...).
+
+    Raises
+    ------
+    ConfigError : the coefficients do not match the terms, or a term is not among ``inputs``
+    """
+    coef, terms = list(ac.confidence), list(ac.confidence_terms)
+    if len(coef) != 1 + len(terms):
+        raise ConfigError(f"align.confidence has {len(coef)} coefficients for {len(terms)} align.confidence_terms: "
+                          f"give the intercept and one coefficient per term")
+    missing = [t for t in terms if t not in inputs or not np.isfinite(inputs[t])]
+    if missing:
+        raise ConfigError(f"align.confidence_terms uses {', '.join(missing)}, which this pose does not have "
+                          f"(it has {', '.join(sorted(inputs))})")
+    z = coef[0] + sum(c * float(inputs[t]) for c, t in zip(coef[1:], terms))
+    return float(1.0 / (1.0 + np.exp(-np.clip(z, -500.0, 500.0))))
 
 
 def photo_edges_kwargs(ac) -> dict:

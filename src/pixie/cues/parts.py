@@ -86,6 +86,15 @@ class PartSupport:
                 "revealed_support": round(self.revealed, 4), "n_revealed": self.n_revealed,
                 "exclusive_shifted_support": round(self.exclusive_shifted, 4)}
 
+    @classmethod
+    def from_dict(cls, d: dict) -> "PartSupport":
+        """Inverse of :meth:`as_dict` (records without the later fields get their defaults; no contour points)."""
+        return cls(index=d["index"], name=d["name"], verdict=d.get("verdict", ""), support=d["support"],
+                   relative=d["relative"], shifted=d["shifted_support"], shift_px=d["shift_px"], visible=d["visible"],
+                   n_points=d["n_points"], colour=d.get("colour", 1.0), exclusive=d.get("exclusive_support", 0.0),
+                   n_exclusive=d.get("n_exclusive", 0), revealed=d.get("revealed_support", 0.0),
+                   n_revealed=d.get("n_revealed", 0), exclusive_shifted=d.get("exclusive_shifted_support", 0.0))
+
 
 def report_kwargs(pc: PartsConfig) -> tuple[dict, dict]:
     """The keywords of :func:`part_support` and of :func:`judge_parts` that ``config.parts`` sets."""

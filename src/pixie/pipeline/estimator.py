@@ -67,7 +67,8 @@ from pixie.pipeline.query import QueryCrop, bbox_from_mask, check_bbox, check_qu
 from pixie.references.set import ReferenceSet, add_features
 from pixie.cues.refine import aligned_correspondences, render_in_crop
 from pixie.geometry.render import Renderer
-from pixie.cues.edge_align import align, align_kwargs, edge_fit, flip_twins, photo_edges, photo_edges_kwargs
+from pixie.cues.edge_align import (align, align_kwargs, calibrated_confidence, confidence_size, edge_fit, flip_twins,
+                                   photo_edges, photo_edges_kwargs)
 from pixie.cues.edges import EdgeQuery
 from pixie.cues.parts import (complement_renderers, judge_parts, part_renderers, part_support, report_kwargs,
                               robust_part_fit)
@@ -599,12 +600,19 @@ class PoseEstimator:
             timings["region_refine"] = time.perf_counter() - t
         return pool
 
+    def object_renderer(self) -> Renderer:
+        """The object's renderer with smooth normals (the edge alignment's), made once per estimator: for the
+        alignment, and for masks of found instances (:mod:`pixie.pipeline.find`)."""
+        if self._align_renderer is None:
+            self._align_renderer = Renderer(self.refs.mesh, smooth_normals=True)
+        return self._align_renderer
+
     def _align_setup(self, q: Query, photo: bool = True) -> tuple[Renderer, object, dict]:
         """What the edge alignment of query ``q`` needs (``config.align``): the renderer, the photo's edges (also
         kept as ``q.photo_edges``; made again unless ``photo`` is false and they exist) and the keywords of
         :func:`pixie.cues.edge_align.align`."""
         ac = self.cfg.align
-        ren = self._align_renderer or Renderer(self.refs.mesh, smooth_normals=True)
+        ren = self.object_renderer()
         if photo or q.photo_edges is None:
             q.photo_edges = photo_edges(q.image, q.K, q.box, q.mask, **photo_edges_kwargs(ac))
         return ren, q.photo_edges, align_kwargs(ac) | {"hull": self.box_points}
@@ -692,6 +700,16 @@ class PoseEstimator:
         res.device = str(getattr(self.matcher, "device", "cpu"))
         return res
 
+    def confidence_inputs(self, h: Hypothesis, q: Query | None) -> dict[str, float]:
+        """The terms the calibrated confidence may use (``config.CONFIDENCE_TERMS``) of hypothesis ``h``: its
+        recorded terms, and ``size``, its projected diameter in photo px / 100, clipped to the calibrated range
+        (:func:`pixie.cues.edge_align.confidence_size`; needs the query's K)."""
+        x = {k: float(v) for k, v in h.terms.items() if v is not None}
+        if q is not None:
+            c = h.T_cam_from_obj[:3, :3] @ self.refs.mesh.center + h.T_cam_from_obj[:3, 3]
+            x["size"] = confidence_size(float(q.K[0, 0]) * self.refs.mesh.diameter / max(float(c[2]), 1e-9))
+        return x
+
     def result(self, hyps: list[Hypothesis], timings: dict[str, float] | None = None,
                q: Query | None = None) -> PoseResult:
         """The best hypothesis as a :class:`PoseResult` with its confidence and the distinct runners-up.
@@ -714,11 +732,12 @@ class PoseEstimator:
         aligned = ac.enabled and "fit" in best.terms and best.source != "prior"
         if best.source == "prior":  # a refined prior: its aligned fit is the confidence (not calibrated)
             confidence = float(best.fit)
-        elif aligned and len(ac.confidence) == 3:  # calibrated on LM-O dev (bench/lmo_select.py)
-            margin = best.score - (distinct[1].score if len(distinct) > 1 else 0.0)
-            a, b, c = ac.confidence
-            confidence = float(1.0 / (1.0 + np.exp(-(a + b * best.terms["fit"] + c * margin))))
-            best.terms["margin"] = margin
+        elif aligned and ac.confidence:  # calibrated on LM-O dev (bench/lmo_select.py)
+            best.terms["margin"] = best.score - (distinct[1].score if len(distinct) > 1 else 0.0)
+            inputs = self.confidence_inputs(best, q)
+            if "size" in inputs:
+                best.terms["size"] = inputs["size"]
+            confidence = calibrated_confidence(ac, inputs)
         distinct += [h for h in hyps if h.matcher_best and all(h is not d for d in distinct)][:1]  # for comparisons
         shape_pose = best.source in ("edges", "region", "prior") or np.isfinite(best.edge)
         failed = (best.n_inliers < max(self.cfg.pose.min_inliers, 1) and not shape_pose) or best.score <= 0
@@ -738,5 +757,5 @@ class PoseEstimator:
                                      "saturated image, or a box on a featureless area")
         res = PoseResult(best.T_cam_from_obj, best.score, best.n_inliers, failed, msg, best.view, best.roll,
                          confidence, distinct, timings, warnings=warns, candidates=list(hyps))
-        res.confidence_calibrated = bool(aligned and len(ac.confidence) == 3)
+        res.confidence_calibrated = bool(aligned and ac.confidence)
         return res

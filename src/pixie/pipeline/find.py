@@ -23,7 +23,6 @@ import numpy as np
 
 from pixie.cues.detect import Proposal, TemplateDetector
 from pixie.errors import PixieError
-from pixie.geometry.render import Renderer
 from pixie.pose.results import PoseResult
 from pixie.pose.solve import box_iou, projected_box
 from pixie.references.templates import ContourTemplates
@@ -63,10 +62,7 @@ def detector_for(est, K: np.ndarray, **kw) -> TemplateDetector:
 
 def _instance_mask(est, T: np.ndarray, K: np.ndarray, shape: tuple[int, int], grow_px: int = 4) -> np.ndarray:
     """The image pixels of the object at pose ``T``, grown by ``grow_px`` (what one found instance covers)."""
-    ren = est.__dict__.get("_find_renderer")
-    if ren is None:
-        ren = est.__dict__.setdefault("_find_renderer", Renderer(est.refs.mesh, smooth_normals=False))
-    m = ren.render(T, np.asarray(K, np.float64), shape[0], shape[1]).mask.astype(np.uint8)
+    m = est.object_renderer().render(T, np.asarray(K, np.float64), shape[0], shape[1]).mask.astype(np.uint8)
     return cv2.dilate(m, np.ones((2 * grow_px + 1, 2 * grow_px + 1), np.uint8)) > 0
 
 

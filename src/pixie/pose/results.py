@@ -23,8 +23,9 @@ SCORE_NOTE = ("support of the pose: summed match similarity of its PnP inliers a
 CONFIDENCE_NOTE = ("score / (score + the best distinct alternative's score): how much a hypothesis stands out, "
                    "0.5 = a tie. Not calibrated: it is not a probability that the pose is correct")
 
-CALIBRATED_NOTE = ("estimated probability that the pose is right (ADD(-S) < 0.1 diameter), from its aligned edge fit "
-                   "and its margin over the best distinct alternative; calibrated on LM-O dev photos with ground-truth "
+CALIBRATED_NOTE = ("estimated probability that the pose is right (ADD(-S) < 0.1 diameter), from the terms "
+                   "config.align.confidence_terms names (by default its aligned edge fit, the object's projected size and "
+                   "its margin over the best distinct alternative); calibrated on LM-O dev photos with ground-truth "
                    "boxes (bench/RESULTS.md, 'Confidence'): other objects, cameras or boxes may be calibrated differently")
 
 NO_BOX_WHY = "pixie does not guess where the object is (the box sets the crop and the object's distance)"

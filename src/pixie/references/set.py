@@ -19,6 +19,7 @@ hash and the build config; a stale, foreign or corrupt file raises :class:`Refer
 
 from __future__ import annotations
 
+import contextlib
 import ctypes
 import os
 import signal
@@ -336,12 +337,25 @@ def _render_view(mesh: Mesh, cfg: RefsConfig, T_base: np.ndarray, K0: np.ndarray
 def _die_with_parent(parent_pid: int) -> None:
     """Make this worker process die with its parent (Linux: PR_SET_PDEATHSIG) and leave Ctrl-C to the parent."""
     signal.signal(signal.SIGINT, signal.SIG_IGN)  # the parent handles Ctrl-C and stops the pool
+    signal.pthread_sigmask(signal.SIG_UNBLOCK, {signal.SIGINT})  # blocked since the fork (_sigint_held): now ignored
     try:
         ctypes.CDLL(None, use_errno=True).prctl(1, signal.SIGKILL)  # 1 = PR_SET_PDEATHSIG
     except (OSError, AttributeError):  # not Linux: workers end when the pool's pipe closes
         pass
     if os.getppid() != parent_pid:  # the parent died before the line above
         os._exit(1)
+
+
+@contextlib.contextmanager
+def _sigint_held():
+    """Hold Ctrl-C (SIGINT blocked, not lost) while the pool forks: a worker inherits the block and ignores SIGINT
+    before unblocking it (:func:`_die_with_parent`), so a Ctrl-C that reaches the process group in the moment after a
+    fork no longer raises KeyboardInterrupt inside a worker (a traceback on stderr); the parent gets it on leaving."""
+    old = signal.pthread_sigmask(signal.SIG_BLOCK, {signal.SIGINT})
+    try:
+        yield
+    finally:
+        signal.pthread_sigmask(signal.SIG_SETMASK, old)
 
 
 def _worker_init(mesh: Mesh, cfg: RefsConfig, K0: np.ndarray, n_render: int | None, parent_pid: int) -> None:
@@ -370,7 +384,7 @@ def _iter_rendered_views(mesh: Mesh, cfg: RefsConfig, base: np.ndarray, K0: np.n
     init_args = (mesh, cfg, K0, n_render, os.getpid())
     ex = ProcessPoolExecutor(workers, mp_context=ctx, initializer=_worker_init, initargs=init_args)
     try:
-        with one_thread_while_forking():  # map() forks the workers now: each renders with one OpenCV thread
+        with one_thread_while_forking(), _sigint_held():  # map() forks the workers now: one OpenCV thread each
             views = ex.map(_worker_render, list(base), chunksize=1)
         yield from views
     finally:  # on Ctrl-C or an error: drop the queued views instead of rendering them all first

@@ -128,12 +128,15 @@ def facing_pose(mesh, rng: np.random.Generator, distance_factor: float = 4.0, of
 
 
 def turned_pose(T: np.ndarray, K: np.ndarray, centre: np.ndarray, deg: float, dz: float, shift_px: float,
-                rng: np.random.Generator) -> np.ndarray:
-    """``T`` turned ``deg`` about a random axis through the object centre, depth x (1 + dz), the centre's image
-    shifted ``shift_px`` pixels in a random direction."""
+                rng: np.random.Generator, signed_dz: bool = False) -> np.ndarray:
+    """``T`` turned ``deg`` about a random axis through the object centre, depth x (1 + dz) (x (1 ± dz), the sign
+    drawn, with ``signed_dz``), the centre's image shifted ``shift_px`` pixels in a random direction. Draws, in this
+    order: the axis, the sign (``signed_dz`` only), the shift's direction."""
     axis = rng.normal(size=3)
     R = cv2.Rodrigues(axis / np.linalg.norm(axis) * np.radians(deg))[0]
     c = T[:3, :3] @ centre + T[:3, 3]
+    if signed_dz:
+        dz = dz if rng.random() < 0.5 else -dz
     phi = rng.uniform(0, 2 * np.pi)
     u = K[0, 0] * c[0] / c[2] + K[0, 2] + shift_px * np.cos(phi)
     v = K[1, 1] * c[1] / c[2] + K[1, 2] + shift_px * np.sin(phi)
