@@ -115,6 +115,19 @@ def test_alignment_from_the_true_pose_stays_and_fits(part, make_pose):
     assert edge_fit(ren, pe, far).share < res.fit.share - 0.3
 
 
+def test_alignment_with_every_part_dropped_returns_the_start(part, make_pose):
+    """No model point left (every part dropped, as the part report's robust fit may do on a defective model): the
+    start comes back unchanged with no cost recorded, not an exception (found on the defects benchmark, session 14)."""
+    mesh, ren = part
+    T = make_pose(mesh, 7, distance_factor=3.5, offset_px=40, K=K)
+    img, box, _ = photo([ren], [T], 7)
+    pe = photo_edges(img, K, box)
+    res = align(ren, pe, T, hull=mesh.hull_vertices, face_parts=np.zeros(len(mesh.faces), int), drop_parts={0},
+                **ALIGN)
+    np.testing.assert_array_equal(res.T_cam_from_obj, T)
+    assert res.iterations == 0 and len(res.history) == len(ALIGN["schedule"]) and np.isnan(res.history).all()
+
+
 def test_matcher_correspondences_pull_a_turned_start_to_the_pose(part, make_pose):
     """2D–3D correspondences as residuals (``matches``, ``w_matches``): 80 surface points seen at the true pose,
     1 px noise and 25 % wrong matches, bring a start 10° / 5 % off to the pose on a photo with clutter (without

@@ -450,6 +450,7 @@ def align(renderer: Renderer, pe: PhotoEdges, T0: np.ndarray, center: np.ndarray
         for tau in sched:
             cfg["w_box"] = w_box0 * float(box_taper) ** k_scale
             k_scale += 1
+            cur = float("nan")  # no cost at this scale if no model point is left (e.g. every part dropped)
             for _ in range(max(rerender, 1)):
                 mp = model_points(renderer, T, K, lv.size, n_points, crease_share)
                 if mp is not None and face_parts is not None and len(drop_parts):
