@@ -82,28 +82,27 @@ def main(argv=None) -> int:
         props = dets[t.obj_id].propose(img, top_k=max(args.top, args.rerank), nms_iou=args.nms,
                                        threshold=args.threshold)
         dt = time.perf_counter() - t0
+        box_obj = xyxy(g.box_obj)
+        amodal = [box_iou(p.box_xyxy, box_obj) for p in props]  # every proposal's, the best --top ones reported below
         cands = []
         if args.rerank:
             est = ests.get(t.obj_id)
             if est is None:
                 est = ests[t.obj_id] = PoseEstimator(objects.refs(cfg, t.obj_id, matcher), cfg, matcher)
             t1 = time.perf_counter()
-            for p in props[: args.rerank]:
+            for p, iou in zip(props[: args.rerank], amodal):
                 T0 = dets[t.obj_id].pose(p, K, est.refs.mesh.center, est.box_points)
                 try:
                     res = est.estimate_from_prior(img, K, T0)
                 except PixieError as e:  # e.g. a template pose partly behind the camera
-                    cands.append({"score": p.score, "iou": box_iou(p.box_xyxy, xyxy(g.box_obj)), "error": str(e)})
+                    cands.append({"score": p.score, "iou": iou, "error": str(e)})
                     continue
-                T = res.T_cam_from_obj
-                pb = projected_box(T, K, est.box_points)
+                pb = projected_box(res.T_cam_from_obj, K, est.box_points)
                 terms = res.hypotheses[0].terms if res.hypotheses else {}
-                cands.append({"score": p.score, "iou": box_iou(p.box_xyxy, xyxy(g.box_obj)),
-                              "iou_aligned": box_iou(pb, xyxy(g.box_obj)), "box_aligned": pb.tolist(),
-                              **{k: float(v) for k, v in terms.items()}})
+                cands.append({"score": p.score, "iou": iou, "iou_aligned": box_iou(pb, box_obj),
+                              "box_aligned": pb.tolist(), **{k: float(v) for k, v in terms.items()}})
             dt_rerank = time.perf_counter() - t1
-        props = props[: args.top]
-        amodal = [box_iou(p.box_xyxy, xyxy(g.box_obj)) for p in props]
+        props, amodal = props[: args.top], amodal[: args.top]
         visib = [box_iou(p.box_xyxy, xyxy(g.box_visib)) for p in props]
         r = {"target": [t.scene_id, t.im_id, t.obj_id], "visib_fract": g.visib_fract, "seconds": dt,
              "top1": bool(amodal[:1] and amodal[0] >= 0.5), "topk": bool(max(amodal, default=0) >= 0.5),

@@ -204,5 +204,5 @@ def test_calibrated_confidence_is_the_logistic_of_the_named_terms():
     with pytest.raises(ConfigError, match="uses size"):
         calibrated_confidence(ac, {"fit": 0.4, "margin": 0.1})
     ac.confidence = [1.0, 2.0]
-    with pytest.raises(ConfigError, match="2 coefficients for 3"):
+    with pytest.raises(ConfigError, match="align.confidence has 2 coefficients but align.confidence_terms names 3"):
         calibrated_confidence(ac, x)

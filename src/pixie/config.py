@@ -42,7 +42,7 @@ CHOICES: dict[str, tuple[str, ...]] = {
 SIGNED_LISTS = {"align.confidence"}
 # What the calibrated confidence may be computed from (config.align.confidence_terms; pixie.pipeline.estimator).
 CONFIDENCE_TERMS = ("fit", "fit_silhouette", "fit_visible", "fit_dist", "edge", "region", "fused", "margin", "size")
-LIST_LENGTHS = {"align.confidence": tuple(range(0, 12))}
+LIST_LENGTHS = {"align.confidence": tuple(range(0, len(CONFIDENCE_TERMS) + 2))}  # [] or intercept + a term each
 # (low, high, low_inclusive): numbers outside are refused; None bounds are open.
 RANGES: dict[str, tuple[float | None, float | None, bool]] = {
     "refs.n_fibonacci": (0, 100_000, True),
@@ -368,6 +368,14 @@ class AlignConfig(_Section):
     reset_fit: float = 0.3  # pixie track: a refined prior with less aligned fit is lost -> full search (bench/track.py)
     reset_ratio: float = 0.75  # ... or with less than this share of the recent frames' median fit (bench/track.py)
 
+    def check_confidence(self) -> None:
+        """Raise :class:`ConfigError` unless ``confidence`` is empty or holds the intercept and one coefficient per
+        ``confidence_terms`` name (checked when a config is loaded, and again where the confidence is computed)."""
+        if self.confidence and len(self.confidence) != 1 + len(self.confidence_terms):
+            raise ConfigError(f"align.confidence has {len(self.confidence)} coefficients but align.confidence_terms "
+                              f"names {len(self.confidence_terms)} terms: give the intercept and one coefficient per "
+                              f"term ({1 + len(self.confidence_terms)} numbers), or [] for the uncalibrated ratio")
+
 
 _SECTION_NAMES[AlignConfig] = "align"
 CHOICES["align.search"] = ("normal", "nearest")
@@ -458,11 +466,7 @@ class PixieConfig:
     def check(self) -> "PixieConfig":
         """Checks between keys (each key alone is checked when set): the calibrated confidence has one coefficient
         per term plus the intercept."""
-        ac = self.align
-        if ac.confidence and len(ac.confidence) != 1 + len(ac.confidence_terms):
-            raise ConfigError(f"align.confidence has {len(ac.confidence)} coefficients but align.confidence_terms names "
-                              f"{len(ac.confidence_terms)} terms: give the intercept and one coefficient per term "
-                              f"({1 + len(ac.confidence_terms)} numbers), or [] for the uncalibrated ratio")
+        self.align.check_confidence()
         return self
 
     @classmethod

@@ -511,10 +511,8 @@ def calibrated_confidence(ac, inputs: dict[str, float]) -> float:
     ------
     ConfigError : the coefficients do not match the terms, or a term is not among ``inputs``
     """
+    ac.check_confidence()
     coef, terms = list(ac.confidence), list(ac.confidence_terms)
-    if len(coef) != 1 + len(terms):
-        raise ConfigError(f"align.confidence has {len(coef)} coefficients for {len(terms)} align.confidence_terms: "
-                          f"give the intercept and one coefficient per term")
     missing = [t for t in terms if t not in inputs or not np.isfinite(inputs[t])]
     if missing:
         raise ConfigError(f"align.confidence_terms uses {', '.join(missing)}, which this pose does not have "
