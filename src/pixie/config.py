@@ -414,6 +414,13 @@ class PartsConfig(_Section):
     supported_above: float = 1.0  # ... but never a part whose relative edge support is at least this (colour alone)
     shift_gain: float = 0.4  # ... 'displaced' when a shift raises its support by this (relative to the median)
     found_shifted: float = 0.97  # ... to at least this share of the median part's support)
+    # 3D moves (pixie.cues.parts.part_moves: along / about the model's axes) of the parts supported less than
+    # move_below x the median part; 'displaced' when the best move gains move_gain of support where its contour differs
+    moves: bool = True
+    move_below: float = 0.9
+    move_gain: float = 0.3
+    move_changed: float = 0.3  # a move is judged when it changes this share of the part's visible contour pixels ...
+    move_px: float = 4.0  # ... and shifts some vertex of the part by this many crop px (pose errors are smaller)
 
 
 _SECTION_NAMES[PartsConfig] = "parts"
@@ -423,7 +430,9 @@ RANGES.update({"parts.fit_px": (0, 100, False), "parts.shift_frac": (0, 1, True)
                "parts.min_visible": (0, 1, True), "parts.flag_below": (-10, 10, True), "parts.shift_gain": (0, None, True),
                "parts.found_shifted": (0, None, True), "parts.colour_weight": (0, 100, True), "parts.supported_above": (0, 100, True),
                "parts.colour_ab": (0, 300, False), "parts.step_frac": (0, 1, True),
-               "parts.revealed_weight": (0, 100, True), "parts.shift_weight": (0, 100, True)})
+               "parts.revealed_weight": (0, 100, True), "parts.shift_weight": (0, 100, True),
+               "parts.move_below": (0, 100, True), "parts.move_gain": (-1, 1, True), "parts.move_changed": (0, 10, True),
+               "parts.move_px": (0, 1000, True)})
 
 
 @dataclass

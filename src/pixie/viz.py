@@ -148,7 +148,8 @@ def draw_parts(image: np.ndarray, parts, radius: int = 1) -> np.ndarray:
         if p.verdict in SUSPECT_VERDICTS and len(p.uv):
             u, v = np.asarray(p.uv).mean(axis=0)
             org = (int(u) + 4, int(v))
-            text = f"{p.name}: {p.verdict}"
+            moved = getattr(p, "move", "") if p.verdict == "displaced" and getattr(p, "move_gain", 0.0) > 0 else ""
+            text = f"{p.name}: {p.verdict}" + (f" ({moved})" if moved else "")
             cv2.putText(out, text, org, cv2.FONT_HERSHEY_SIMPLEX, scale, (0, 0, 0), 3, cv2.LINE_AA)
             cv2.putText(out, text, org, cv2.FONT_HERSHEY_SIMPLEX, scale, VERDICT_COLORS[p.verdict], 1, cv2.LINE_AA)
     return out

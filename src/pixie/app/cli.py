@@ -295,7 +295,11 @@ def part_report_text(res) -> str:
                               f"{res.confidence:.2f})" if res.confidence < 0.5 else "")
     lines = [head]
     for p in rows:
-        extra = f", best shifted {p['shifted_support']:.2f} at {p['shift_px']:.0f} px" if p["verdict"] == "displaced" else ""
+        extra = ""
+        if p["verdict"] == "displaced":
+            extra = (f", fits better moved {p['move']} (support +{p['move_gain']:.2f})" if p.get("move")
+                     and p.get("move_gain", 0.0) > 0 else
+                     f", best shifted {p['shifted_support']:.2f} at {p['shift_px']:.0f} px")
         hidden = (f", behind it {p['revealed_support']:.2f}" if p.get("n_revealed", 0) else "")
         lines.append(f"  {p['name']:<28s} {p['verdict']:<11s} support {p['support']:.2f} "
                      f"(x{p['relative']:.2f} of the median part){hidden}, {100 * p['visible']:.0f} % visible{extra}")

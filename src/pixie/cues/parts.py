@@ -43,12 +43,13 @@ from pixie.config import PART_KINDS, PartsConfig
 from pixie.cues.edge_align import align, edge_distances
 from pixie.cues.edge_photo import PhotoEdges
 from pixie.geometry.mesh import Mesh, from_arrays
-from pixie.geometry.render import RenderResult, Renderer
+from pixie.cues.part_moves import (MoveFit, explain_away, explained, move_evidence, near_maps, part_contours,
+                                   part_moves)
+from pixie.geometry.render import Renderer
 from pixie.pose.results import SUSPECT_VERDICTS
-from pixie.references.templates import edge_map
 
-__all__ = ["VERDICTS", "PartSupport", "report_kwargs", "part_contours", "part_renderers", "complement_renderers",
-           "part_support", "part_score", "judge_parts", "robust_part_fit"]
+__all__ = ["VERDICTS", "PartSupport", "report_kwargs", "part_renderers", "complement_renderers", "part_support",
+           "part_score", "judge_parts", "robust_part_fit"]
 
 VERDICTS = ("present", "missing", "displaced", "not visible")
 
@@ -72,6 +73,10 @@ class PartSupport:
     revealed: float = 0.0  # support of the contour pixels the model without it has and the whole model does not
     n_revealed: int = 0
     exclusive_shifted: float = 0.0  # the exclusive contour's best support when slid (the shift search)
+    move_gain: float = 0.0  # the best 3D move's support gain where the moved part's contour differs (move_evidence)
+    move: str = ""  # that move, in words ('+x 8.0 mm', 'turned 90 deg about z'); '' when none was tried
+    move_support: float = 0.0  # the support of the moved part's own contour pixels (where it differs) at that move
+    move_explained_by: int = -1  # another part whose move explains the same pixels better (explain_away), or -1
     verdict: str = ""
     uv: np.ndarray = field(default_factory=lambda: np.zeros((0, 2)), repr=False)  # its contour points, photo px
     hit: np.ndarray = field(default_factory=lambda: np.zeros(0, bool), repr=False)  # ... and which are supported
@@ -84,7 +89,9 @@ class PartSupport:
                 "visible": round(self.visible, 4), "n_points": self.n_points, "colour": round(self.colour, 4),
                 "exclusive_support": round(self.exclusive, 4), "n_exclusive": self.n_exclusive,
                 "revealed_support": round(self.revealed, 4), "n_revealed": self.n_revealed,
-                "exclusive_shifted_support": round(self.exclusive_shifted, 4)}
+                "exclusive_shifted_support": round(self.exclusive_shifted, 4),
+                "move_gain": round(self.move_gain, 4), "move": self.move, "move_support": round(self.move_support, 4),
+                "move_explained_by": self.move_explained_by}
 
     @classmethod
     def from_dict(cls, d: dict) -> "PartSupport":
@@ -93,16 +100,21 @@ class PartSupport:
                    relative=d["relative"], shifted=d["shifted_support"], shift_px=d["shift_px"], visible=d["visible"],
                    n_points=d["n_points"], colour=d.get("colour", 1.0), exclusive=d.get("exclusive_support", 0.0),
                    n_exclusive=d.get("n_exclusive", 0), revealed=d.get("revealed_support", 0.0),
-                   n_revealed=d.get("n_revealed", 0), exclusive_shifted=d.get("exclusive_shifted_support", 0.0))
+                   n_revealed=d.get("n_revealed", 0), exclusive_shifted=d.get("exclusive_shifted_support", 0.0),
+                   move_gain=d.get("move_gain", 0.0), move=d.get("move", ""), move_support=d.get("move_support", 0.0),
+                   move_explained_by=d.get("move_explained_by", -1))
 
 
 def report_kwargs(pc: PartsConfig) -> tuple[dict, dict]:
     """The keywords of :func:`part_support` and of :func:`judge_parts` that ``config.parts`` sets."""
     support = dict(fit_px=pc.fit_px, shift_frac=pc.shift_frac, min_points=pc.min_points, colour_ab=pc.colour_ab,
-                   step_frac=pc.step_frac, kinds=tuple(PART_KINDS.index(k) for k in pc.kinds))
+                   step_frac=pc.step_frac, kinds=tuple(PART_KINDS.index(k) for k in pc.kinds),
+                   moves=pc.moves, min_visible=pc.min_visible, move_below=pc.move_below,
+                   move_changed=pc.move_changed, move_px=pc.move_px)
     judge = dict(flag_below=pc.flag_below, colour_weight=pc.colour_weight, revealed_weight=pc.revealed_weight,
                  shift_weight=pc.shift_weight, supported_above=pc.supported_above, shift_gain=pc.shift_gain,
-                 found_shifted=pc.found_shifted, min_points=pc.min_points, min_visible=pc.min_visible)
+                 found_shifted=pc.found_shifted, min_points=pc.min_points, min_visible=pc.min_visible,
+                 move_gain=pc.move_gain if pc.moves else float("inf"))
     return support, judge
 
 
@@ -134,93 +146,6 @@ def complement_renderers(mesh: Mesh, smooth_normals: bool = True) -> list[tuple[
     return out
 
 
-def _bin_pixel(xy: np.ndarray, ori: np.ndarray, shape: tuple[int, int], n_bins: int) -> tuple[np.ndarray, ...]:
-    """Orientation bin (of ``n_bins`` over [0, pi)), row and column of each contour pixel, clipped to ``shape``."""
-    b = np.floor(np.mod(ori, np.pi) / np.pi * n_bins).astype(int) % n_bins
-    x = np.clip(np.rint(xy[:, 0]).astype(int), 0, shape[1] - 1)
-    y = np.clip(np.rint(xy[:, 1]).astype(int), 0, shape[0] - 1)
-    return b, y, x
-
-
-def _near_maps(xy: np.ndarray, ori: np.ndarray, shape: tuple[int, int], n_bins: int = 8) -> np.ndarray:
-    """(n_bins, H, W) bool: a contour pixel of orientation bin b (or b ± 1) lies within 1 px (3 x 3)."""
-    maps = np.zeros((n_bins,) + tuple(shape), np.uint8)
-    if len(xy):
-        maps[_bin_pixel(xy, ori, shape, n_bins)] = 1
-    k3 = np.ones((3, 3), np.uint8)
-    dil = np.stack([cv2.dilate(m, k3) for m in maps]).astype(bool)
-    return dil | np.roll(dil, 1, axis=0) | np.roll(dil, -1, axis=0)
-
-
-def _explained(xy: np.ndarray, ori: np.ndarray, near: np.ndarray) -> np.ndarray:
-    """Which contour pixels (xy, ori) another contour (its :func:`_near_maps`) also has."""
-    if not len(xy):
-        return np.zeros(0, bool)
-    return near[_bin_pixel(xy, ori, near.shape[1:], near.shape[0])]
-
-
-def part_contours(r: RenderResult, face_parts: np.ndarray, crease_deg: float = 35.0, depth_jump: float = 0.01,
-                  step_mm: float = 0.0) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
-    """Contour pixels of every part in one render.
-
-    A depth step (one surface in front of another) counts when the far side is more than ``depth_jump`` of the
-    depth and more than ``step_mm`` farther: a LEGO stud's rim (1.7 mm) is not a step at ``step_mm`` 5, a brick on
-    a brick is.
-
-    Returns
-    -------
-    xy : (N, 2) float pixel centres; ori : (N,) unsigned edge orientation (radians, [0, pi));
-    part : (N,) part index of each pixel; part_map : (H, W) int part index per pixel (-1 background);
-    kind : (N,) 0 silhouette, 1 depth step where the part is in front, 2 seam with another part, 3 crease
-    """
-    part_map = np.where(r.tri_ids >= 0, face_parts[np.maximum(r.tri_ids, 0)], -1).astype(np.int32)
-    obj = part_map >= 0
-    depth = r.depth.astype(np.float32)
-    sil, crease, ori, _ = edge_map(depth, r.normals, crease_deg, depth_jump)
-    # the far side of a depth step is the occluded part: the edge is the near part's
-    big = np.float32(1e9)
-    dmin = cv2.erode(np.where(obj, depth, big), np.ones((3, 3), np.uint8), borderType=cv2.BORDER_CONSTANT,
-                     borderValue=float(big))
-    jump = np.maximum(depth_jump * depth, np.float32(step_mm))
-    far = obj & (depth - dmin > jump)
-    # seams: a 4-neighbour of another part at about the same depth
-    seam = np.zeros_like(obj)
-    H, W = obj.shape
-    for dy, dx in ((0, 1), (1, 0)):
-        a = (slice(0, H - dy), slice(0, W - dx))
-        b = (slice(dy, H), slice(dx, W))
-        s = obj[a] & obj[b] & (part_map[a] != part_map[b])
-        seam[a] |= s
-        seam[b] |= s
-    # kinds: 0 silhouette, 1 depth step (the near side), 2 seam, 3 crease inside the part
-    step = crease & (depth - dmin <= jump) & _near_step(depth, obj, jump)
-    kind_map = np.full(obj.shape, -1, np.int8)
-    kind_map[crease] = 3
-    kind_map[seam] = 2
-    kind_map[step] = 1
-    kind_map[sil] = 0
-    edges = (sil | crease | seam) & ~far & obj
-    # orientation: the part indicator's gradient on the part's outline (silhouette, steps, seams), the render's
-    # own edge orientation on creases inside a part
-    ori_out = ori.astype(np.float64).copy()
-    for k in np.unique(part_map[edges]):
-        ind = cv2.GaussianBlur((part_map == k).astype(np.float32), (0, 0), 1.0)
-        gx = cv2.Sobel(ind, cv2.CV_32F, 1, 0, ksize=3)
-        gy = cv2.Sobel(ind, cv2.CV_32F, 0, 1, ksize=3)
-        on = edges & (part_map == k) & (np.hypot(gx, gy) > 0.1)
-        ori_out[on] = np.mod(np.arctan2(gy[on], gx[on]), np.pi)
-    ys, xs = np.nonzero(edges)
-    return (np.stack([xs, ys], 1).astype(np.float64), ori_out[ys, xs], part_map[ys, xs].astype(np.int64), part_map,
-            kind_map[ys, xs])
-
-
-def _near_step(depth: np.ndarray, obj: np.ndarray, jump: np.ndarray) -> np.ndarray:
-    """Pixels with a neighbour (3 x 3) farther by more than ``jump`` (per pixel, mm), or background."""
-    dmax = cv2.dilate(np.where(obj, depth, np.float32(1e9)), np.ones((3, 3), np.uint8),
-                      borderType=cv2.BORDER_CONSTANT, borderValue=1e9)
-    return obj & (dmax - depth > jump)
-
-
 def _shift_grid(reach: float, step: float) -> np.ndarray:
     """2D shifts (crop px) with 2 px <= |s| <= reach on a ``step`` grid."""
     g = np.arange(-reach, reach + 1e-9, step)
@@ -246,7 +171,9 @@ def part_support(renderer: Renderer, face_parts: np.ndarray, part_names, pe: Pho
                  fit_px: float = 1.5, max_bin_gap: int = 1, shift_frac: float = 0.12, shift_step: float = 2.0,
                  renderers: list[Renderer] | None = None, min_points: int = 12, kinds=(0, 1, 2),
                  max_points: int = 240, step_frac: float = 0.0, colour_ab: float = 12.0,
-                 complements: list[tuple[Renderer, np.ndarray]] | None = None) -> list[PartSupport]:
+                 complements: list[tuple[Renderer, np.ndarray]] | None = None,
+                 moves: bool = False, min_visible: float = 0.2, move_below: float = 0.9, move_changed: float = 0.3,
+                 move_px: float = 4.0) -> list[PartSupport]:
     """Every part's support at pose ``T`` (verdicts not yet set: :func:`judge_parts`).
 
     Parameters
@@ -265,6 +192,11 @@ def part_support(renderer: Renderer, face_parts: np.ndarray, part_names, pe: Pho
     colour_ab : chroma distance (CIELAB a*, b* units) within which a pixel has the part's paint
     complements : :func:`complement_renderers` of the mesh (made here when None): the model without each part, for
         the exclusive contour (what only the part explains) and the revealed one (what its absence would show)
+    moves, min_visible, move_below : test 3D moves (:func:`part_moves`, :func:`move_evidence`: ``move_gain`` and
+        ``move``) of every part with ``min_points`` visible contour pixels, at least ``min_visible`` of it in view and
+        a support below ``move_below`` of the median part's
+    move_changed, move_px : a move is judged when it changes at least ``move_changed`` x the part's visible contour
+        pixels and shifts some vertex of it by ``move_px`` crop px (:func:`pixie.cues.part_moves.move_evidence`)
     """
     face_parts = np.asarray(face_parts)
     n_parts = len(part_names)
@@ -279,7 +211,7 @@ def part_support(renderer: Renderer, face_parts: np.ndarray, part_names, pe: Pho
     renderers = renderers if renderers is not None else part_renderers(whole)
     complements = complements if complements is not None else complement_renderers(
         whole, smooth_normals=renderer.smooth_normals)
-    near_all = _near_maps(xy, ori, part_map.shape)
+    near_all = near_maps(xy, ori, part_map.shape)
     lab = cv2.cvtColor(np.ascontiguousarray(pe.crop.image), cv2.COLOR_RGB2LAB).astype(np.float32)
     box_side = float(max(pe.box[2] - pe.box[0], pe.box[3] - pe.box[1]))
     shifts = _shift_grid(max(shift_frac * box_side, 2.0), shift_step)
@@ -309,13 +241,13 @@ def part_support(renderer: Renderer, face_parts: np.ndarray, part_names, pe: Pho
             wxy, wori, _, _, wkind = part_contours(rw, cparts, step_mm=step_mm)
             wk = np.isin(wkind, np.asarray(kinds))
             wxy, wori = wxy[wk], wori[wk]
-            mine = inside & ~_explained(xy, ori, _near_maps(wxy, wori, part_map.shape))
+            mine = inside & ~explained(xy, ori, near_maps(wxy, wori, part_map.shape))
             n_excl = int(mine.sum())
             excl = float(hit[mine].mean()) if n_excl else 0.0
             excl_shifted = excl
             if n_excl >= min_points and len(shifts):
                 excl_shifted = max(excl, _slide(pe, xy, ori, mine, shifts, max_points, max_bin_gap, fit_px)[0])
-            new_px = ~_explained(wxy, wori, near_all)
+            new_px = ~explained(wxy, wori, near_all)
             if new_px.any():
                 dw, win = edge_distances(pe, wxy[new_px], wori[new_px], max_bin_gap, fit_px)
                 n_rev = int(win.sum())
@@ -329,6 +261,22 @@ def part_support(renderer: Renderer, face_parts: np.ndarray, part_names, pe: Pho
     med = float(np.median(judged)) if judged else 0.0
     for p in out:
         p.relative = float(p.support / med) if med > 0 else 0.0
+    if moves:  # 3D moves of the parts the photo supports less than the median part (present parts: no cost)
+        fits: dict[int, MoveFit] = {}
+        for p in out:
+            k = p.index
+            if (p.n_points >= min_points and p.visible >= min_visible and p.relative < move_below
+                    and k < len(complements) and k < len(renderers)):
+                f = move_evidence(pe, T, k, complements[k], renderers[k], part_moves(whole, k), fit_px=fit_px,
+                                  max_bin_gap=max_bin_gap, kinds=kinds, step_mm=step_mm, min_points=min_points,
+                                  min_changed=max(min_points, int(np.ceil(move_changed * p.n_points))),
+                                  min_px=move_px)
+                if f is not None:
+                    p.move_gain, p.move, p.move_support = f.gain, f.name, f.support
+                    if f.gain > 0:
+                        fits[k] = f
+        for loser, winner in explain_away(fits, min_points).items():
+            out[loser].move_explained_by = winner
     return out
 
 
@@ -364,8 +312,8 @@ def part_score(p: PartSupport, colour_weight: float = 0.0, colour_median: float 
 
 def judge_parts(parts: list[PartSupport], *, flag_below: float = 0.6, colour_weight: float = 0.0,
                 revealed_weight: float = 0.0, shift_weight: float = 0.0, supported_above: float = 1.0,
-                shift_gain: float = 0.4,
-                found_shifted: float = 0.97, min_points: int = 12, min_visible: float = 0.2) -> list[PartSupport]:
+                shift_gain: float = 0.4, found_shifted: float = 0.97, min_points: int = 12,
+                min_visible: float = 0.2, move_gain: float = float("inf")) -> list[PartSupport]:
     """Set each part's verdict (in place; returns ``parts``); supports are relative to the median judged part.
 
     ``not visible``: fewer than ``min_points`` visible contour pixels or less than ``min_visible`` of it in view.
@@ -375,7 +323,9 @@ def judge_parts(parts: list[PartSupport], *, flag_below: float = 0.6, colour_wei
     ``supported_above`` (colour alone never flags a well-supported contour): ``displaced`` when a shift finds it
     (shifted support >= ``found_shifted`` of the median and >= ``shift_gain`` above its own), else ``missing``. The
     others are ``present``. On repetitive assemblies (LEGO studs) a shift also finds a neighbour's edges, hence the
-    strict ``found_shifted``.
+    strict ``found_shifted``. A part whose best 3D move (:func:`move_evidence`) gains at least ``move_gain`` of
+    support is ``displaced`` whatever the rest says (its ``move`` says how), unless another part's move that also
+    passes explains the same pixels better (``move_explained_by``, :func:`explain_away`).
     """
     judged = [p for p in parts if p.n_points >= min_points and p.visible >= min_visible]
     med = float(np.median([p.support for p in judged])) if judged else 0.0
@@ -383,6 +333,9 @@ def judge_parts(parts: list[PartSupport], *, flag_below: float = 0.6, colour_wei
     for p in parts:
         if p.n_points < min_points or p.visible < min_visible or med <= 0:
             p.verdict = "not visible"
+        elif p.move and p.move_gain >= move_gain and not (
+                0 <= p.move_explained_by < len(parts) and parts[p.move_explained_by].move_gain >= move_gain):
+            p.verdict = "displaced"
         elif (part_score(p, colour_weight, med_colour, revealed_weight, med, min_points, shift_weight) >= flag_below
               or p.support / med >= supported_above):
             p.verdict = "present"

@@ -170,6 +170,9 @@ PARTS_NOTE = ("per part of the CAD model at the final pose: support = share of i
               "(silhouette, depth steps, seams) within parts.fit_px of a same-orientation photo edge; relative = "
               "support / the median part's; shifted_support = the best support with the contour slid up to "
               "parts.shift_frac of the box (shift_px: by how far, photo px); visible = share of the part in view; "
+              "move / move_gain = the 3D move of the part (along / about the model's axes) that the photo supports "
+              "best and its support gain where the moved contour differs (parts supported below parts.move_below of "
+              "the median part only); "
               "verdict present / missing / displaced / not visible (thresholds config.parts, calibrated on the "
               "synthetic defects benchmark; meaningful when the pose is right)")
 
