@@ -21,7 +21,10 @@ Per part (:class:`PartSupport`):
   its surroundings, has neither (its low support is no evidence of absence);
 - ``colour``: the share of its visible inner pixels whose chroma (CIELAB a*, b*) lies within ``colour_ab`` of their
   median: one paint gives ~1 whatever the shading, a region that shows a moved part and what it uncovered gives less
-  (for uniformly painted parts; ``colour_weight`` 0 turns the cue off).
+  (for uniformly painted parts; ``colour_weight`` 0 turns the cue off);
+- ``move`` / ``move_gain`` (with ``moves``, ``config.parts.moves``, off by default): the 3D move of a less supported
+  part (shifted along / turned about the model's axes) that the photo supports best, and by how much
+  (:mod:`pixie.cues.part_moves`); a part whose move gains ``move_gain`` is ``displaced``, with the move in words.
 
 :func:`judge_parts` turns these into verdicts: ``not visible`` (too little of it to judge), ``missing``
 (its contour is unsupported and no shift finds it), ``displaced`` (unsupported where it should be, fully
