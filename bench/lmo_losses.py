@@ -36,19 +36,10 @@ import lmo_align_study as S  # noqa: E402  (its stage-1 cache and align_cached)
 from pixie.app.runner import make_matcher  # noqa: E402
 from pixie.config import PixieConfig  # noqa: E402
 from pixie.cues.shape import shape_cues  # noqa: E402
-from pixie.geometry.camera import rotation_angle_deg  # noqa: E402
+from pixie.pipeline.estimator import PoseEstimator  # noqa: E402
 from pixie.pipeline.query import check_bbox  # noqa: E402
 
 KS = (1, 2, 4, 8, 16, 1000)
-
-
-def distinct(hyps: list, min_deg: float = 10.0) -> list:
-    """Hypotheses (in their order) more than ``min_deg`` apart in rotation, as the alignment stage picks them."""
-    out: list = []
-    for h in hyps:
-        if all(rotation_angle_deg(h.T_cam_from_obj[:3, :3], d.T_cam_from_obj[:3, :3]) > min_deg for d in out):
-            out.append(h)
-    return out
 
 
 def cause(cands: list[dict]) -> str:
@@ -102,7 +93,7 @@ def main(argv=None) -> int:
             e = L.pose_errors(od, h.T_cam_from_obj, g.T_cam_from_obj)
             cands.append({"ok": bool(e["add_ok"]), "rot": float(e["rot_err"]), "aligned": h.source in ("aligned", "flip"),
                           "dz": float(h.T_cam_from_obj[2, 3] / g.T_cam_from_obj[2, 3] - 1), "source": h.source})
-        pool = [L.pose_errors(od, h.T_cam_from_obj, g.T_cam_from_obj)["rot_err"] for h in distinct(rec["hyps"])]
+        pool = [L.pose_errors(od, h.T_cam_from_obj, g.T_cam_from_obj)["rot_err"] for h in PoseEstimator.distinct(rec["hyps"], len(rec["hyps"]))]
         for k in KS:
             recall[k] += any(r < 15 for r in pool[:k])
         bv, bo = np.asarray(g.bbox_visib, float), np.asarray(g.bbox_obj, float)

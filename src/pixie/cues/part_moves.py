@@ -20,6 +20,7 @@ import numpy as np
 
 from pixie.cues.edge_align import edge_distances
 from pixie.cues.edge_photo import PhotoEdges
+from pixie.geometry.camera import project, transform_points
 from pixie.geometry.mesh import Mesh
 from pixie.geometry.render import RenderResult, Renderer
 from pixie.geometry.rotations import rodrigues
@@ -175,10 +176,9 @@ def part_moves(mesh: Mesh, k: int, fractions=(1 / 6, 1 / 4, 1 / 3, 1 / 2, 1.0), 
     return out
 
 
-def _composite(rc: RenderResult, cparts: np.ndarray, rp: RenderResult, k: int) -> tuple[np.ndarray, ...]:
-    """Depth, normals and part map of the model without part ``k`` (``rc``, its faces' parts ``cparts``) with the
-    part rendered on its own (``rp``, possibly moved) put back in front where it is nearer."""
-    pc = np.where(rc.tri_ids >= 0, np.asarray(cparts)[np.maximum(rc.tri_ids, 0)], -1)
+def _composite(rc: RenderResult, pc: np.ndarray, rp: RenderResult, k: int) -> tuple[np.ndarray, ...]:
+    """Depth, normals and part map of the model without part ``k`` (``rc``, its part map ``pc``) with the part
+    rendered on its own (``rp``, possibly moved) put back in front where it is nearer."""
     front = rp.mask & (~rc.mask | (rp.depth < rc.depth))
     return (np.where(front, rp.depth, rc.depth), np.where(front[..., None], rp.normals, rc.normals),
             np.where(front, k, pc))
@@ -211,19 +211,11 @@ class MoveFit:
 ROI_MARGIN = 12  # px around a part's reach: more than the edge filters' (8) and the near maps' (1) reach
 
 
-def _project(K: np.ndarray, V: np.ndarray, T: np.ndarray) -> np.ndarray:
-    """(N, 2) pixel positions of object points ``V`` at pose ``T``."""
-    X = V @ T[:3, :3].T + T[:3, 3]
-    z = np.maximum(X[:, 2], 1e-6)
-    return np.stack([K[0, 0] * X[:, 0] / z + K[0, 2], K[1, 1] * X[:, 1] / z + K[1, 2]], 1)
-
-
-def _move_roi(part: Renderer, pe: PhotoEdges, poses: list[np.ndarray], margin: int) -> tuple[int, int, int, int]:
-    """The crop pixels the part can cover at any of ``poses`` (its vertices' projected box) + ``margin``."""
-    V = part.mesh.vertices[np.unique(part.mesh.faces)]
+def _move_roi(V: np.ndarray, pe: PhotoEdges, poses: list[np.ndarray], margin: int) -> tuple[int, int, int, int]:
+    """The crop pixels the part (its vertices ``V``) can cover at any of ``poses`` (projected box) + ``margin``."""
     lo, hi = np.array([np.inf, np.inf]), np.array([-np.inf, -np.inf])
     for P in poses:
-        uv = _project(pe.K, V, P)
+        uv = project(pe.K, transform_points(P, V))
         lo, hi = np.minimum(lo, uv.min(axis=0)), np.maximum(hi, uv.max(axis=0))
     x0, y0 = (int(np.clip(np.floor(v) - margin, 0, pe.size)) for v in lo)
     x1, y1 = (int(np.clip(np.ceil(v) + margin + 1, 0, pe.size)) for v in hi)
@@ -272,18 +264,18 @@ def move_evidence(pe: PhotoEdges, T: np.ndarray, k: int, complement: tuple[Rende
     """
     cren, cparts = complement
     rc = cren.render(T, pe.K, pe.size, pe.size)
+    pc = np.where(rc.tri_ids >= 0, np.asarray(cparts)[np.maximum(rc.tri_ids, 0)], -1)  # its part map, once
     shape = (pe.size, pe.size)
     T = np.asarray(T, np.float64)
-    x0, y0, x1, y1 = _move_roi(part, pe, [T] + [T @ M for _, M in moves], ROI_MARGIN)
     V = part.mesh.vertices[np.unique(part.mesh.faces)]
-    uv0 = _project(pe.K, V, T)
+    x0, y0, x1, y1 = _move_roi(V, pe, [T] + [T @ M for _, M in moves], ROI_MARGIN)
+    uv0 = project(pe.K, transform_points(T, V))
 
     def contour(Tp: np.ndarray | None) -> Contour:
         if Tp is None:  # the part absent: the model without it alone
-            d, n = rc.depth, rc.normals
-            pm = np.where(rc.tri_ids >= 0, np.asarray(cparts)[np.maximum(rc.tri_ids, 0)], -1)
+            d, n, pm = rc.depth, rc.normals, pc
         else:
-            d, n, pm = _composite(rc, cparts, part.render(Tp, pe.K, pe.size, pe.size), k)
+            d, n, pm = _composite(rc, pc, part.render(Tp, pe.K, pe.size, pe.size), k)
         # only where the hypotheses can differ (the part's reach): elsewhere all contours are the same and cancel
         xy, ori, _, _, kind = contours_of_maps(d[y0:y1, x0:x1], n[y0:y1, x0:x1], pm[y0:y1, x0:x1], step_mm=step_mm)
         keep = np.isin(kind, np.asarray(kinds))
@@ -298,7 +290,7 @@ def move_evidence(pe: PhotoEdges, T: np.ndarray, k: int, complement: tuple[Rende
         return None
     best: MoveFit | None = None
     for name, M in moves:
-        if np.max(np.linalg.norm(_project(pe.K, V, T @ M) - uv0, axis=1)) < min_px:
+        if np.max(np.linalg.norm(project(pe.K, transform_points(T @ M, V)) - uv0, axis=1)) < min_px:
             continue
         c = contour(T @ M)
         g0, ga = _versus(c, cad, min_changed), _versus(c, absent, min_changed)
@@ -318,9 +310,8 @@ def move_evidence(pe: PhotoEdges, T: np.ndarray, k: int, complement: tuple[Rende
 def explain_away(fits: dict[int, MoveFit], min_points: int = 12, reach_px: int = 4) -> dict[int, int]:
     """For parts whose best moves change overlapping parts of the image (within ``reach_px``), which one the photo
     supports better: the moved assemblies are compared with each other (:func:`_versus`, where both were taken).
-    Returns {part: the part
-    whose move explains its evidence better}, for the losers only; parts whose changes do not touch stay
-    independent (two defects)."""
+    Returns {part: the part whose move explains its evidence better}, for the losers only; parts whose changes do
+    not touch stay independent (two defects)."""
     k3 = np.ones((2 * reach_px + 1, 2 * reach_px + 1), np.uint8)
     grown = {k: cv2.dilate(f.changed.astype(np.uint8), k3) > 0 for k, f in fits.items()}
     out: dict[int, int] = {}
