@@ -45,6 +45,7 @@ from pixie.cues.parts import (PartSupport, complement_renderers, judge_parts, pa
                               robust_part_fit)
 from pixie.eval import pose_error as M  # noqa: E402
 from pixie.eval.datasets import BopDataset  # noqa: E402
+from pixie.geometry.collide import part_solids  # noqa: E402
 from pixie.geometry.mesh import load_mesh  # noqa: E402
 from pixie.geometry.render import Renderer  # noqa: E402
 
@@ -105,8 +106,8 @@ def analyse(data: Path, ests: dict, cfg: PixieConfig, echo=print, use_mask: bool
         if oid not in models:
             m = load_mesh(data / "models_parts" / f"obj_{oid:06d}.glb")
             models[oid] = (m, Renderer(m, smooth_normals=True), part_renderers(m),
-                           complement_renderers(m, smooth_normals=True))
-        mesh, ren, prs, comps = models[oid]
+                           complement_renderers(m, smooth_normals=True), part_solids(m))
+        mesh, ren, prs, comps, solids = models[oid]
         phys = data / v["model_dir"] / f"obj_{v['model_obj_id']:06d}.ply"
         if str(phys) not in phys_pts:
             phys_pts[str(phys)] = load_mesh(phys).sample_points(2000, seed=1)
@@ -124,6 +125,7 @@ def analyse(data: Path, ests: dict, cfg: PixieConfig, echo=print, use_mask: bool
         if not rec["failed"]:
             T = np.asarray(est["T"], np.float64)
             Tr, ps, dropped = robust_part_fit(ren, mesh.face_parts, mesh.part_names, pe, T, renderers=prs, complements=comps,
+                                              solids=solids,
                                               align_kw=dict(hull=mesh.hull_vertices, **align_kw),
                                               support_kw=support_kw, judge_kw=judge_kw)
             rec.update(add_mm=float(M.add(T, inst.T_cam_from_obj, phys_pts[str(phys)])),
@@ -132,7 +134,7 @@ def analyse(data: Path, ests: dict, cfg: PixieConfig, echo=print, use_mask: bool
                        dropped=dropped, parts=[p.as_dict() for p in ps])
         rec["seconds"] = time.perf_counter() - t
         gt = judge_parts(part_support(ren, mesh.face_parts, mesh.part_names, pe, inst.T_cam_from_obj, renderers=prs,
-                                      complements=comps,
+                                      complements=comps, solids=solids,
                                       **support_kw), **judge_kw)
         rec["parts_gt"] = [p.as_dict() for p in gt]
         rows.append(rec)

@@ -12,10 +12,11 @@ from pixie.cues.parts import (complement_renderers, judge_parts, part_moves, par
                               report_kwargs, robust_part_fit)
 from pixie.errors import ConfigError, MeshError
 from pixie.geometry.camera import look_at, make_K, rotation_angle_deg
+from pixie.geometry.collide import collides, part_solids
 from pixie.geometry.mesh import component_parts, from_arrays, load_mesh
 from pixie.geometry.render import Renderer
 from pixie.synth.assemblies import lego_assembly
-from pixie.synth.defects import missing_part, rotated_part, shifted_part
+from pixie.synth.defects import missing_part, passes_through, rotated_part, shifted_part
 from pixie.synth.photo import Material, random_background, render_rgb
 from pixie.synth.scenes import write_parts_glb
 
@@ -201,33 +202,56 @@ def test_part_moves_are_rigid_moves_along_and_about_the_model_axes(lego):
     assert any(n.startswith("+x") and abs(float(n.split()[1]) - half_x) < 0.05 for n in names)
 
 
+def test_moves_that_pass_a_part_into_another_are_not_tried(lego):
+    """The GLB's parts are closed solids; a brick lowered into the one below collides, lifted off the top or slid
+    along it does not, and the moves the report tries exclude the colliding ones."""
+    mesh, asm = lego["mesh"], lego["asm"]
+    solids = part_solids(mesh)
+    assert all(solids.closed)
+    top = int(np.argmax([p.bounds()[1][2] for p in asm.parts]))  # the highest part: nothing above it
+    moves = dict(part_moves(mesh, top))
+    down = [n for n in moves if n.startswith("-z")]
+    up = [n for n in moves if n.startswith("+z")]
+    assert down and up
+    assert collides(solids, top, moves[max(down, key=lambda n: float(n.split()[1]))])
+    assert not any(collides(solids, top, moves[n]) for n in up)
+    n_free = sum(not collides(solids, top, M) for M in moves.values())
+    assert 0 < n_free < len(moves)
+
+
 def test_a_shifted_or_turned_brick_is_reported_displaced_with_its_move_and_a_complete_assembly_is_not(lego):
     """The 3D move search (``parts.moves`` true, off by default) at the true pose: a brick shifted by 1-2 studs or turned by 90° is
     'displaced', and for a shift the move found is along the true axis with the true sign; on the complete
-    assembly no part gains parts.move_gain by moving. 6 viewpoints each; measured (config.parts with moves on): shifted
-    6 / 6 displaced, the right axis and sign in 6 / 6; turned 6 / 6 flagged, 5 / 6 as 'turned 90 deg about z';
-    complete assemblies: no part displaced and the best gain of any part 0.00-0.13 in 6 / 6."""
+    assembly no part gains parts.move_gain by moving. The defects are those a physical assembly can show (no part
+    passed into another: here the only brick that can turn is the 1x6, which the grid puts half a stud off a turn
+    about its centre). 6 viewpoints each; measured (config.parts with moves on): shifted 6 / 6 displaced, the right
+    axis and sign in 6 / 6; turned 6 / 6 flagged (as 'missing': the search turns about the centre only); complete
+    assemblies: no part displaced in 6 / 6."""
     mesh = lego["mesh"]
-    n_shift = n_axis = n_turn = n_turned = n_clean = 0
+    tol = part_solids(mesh).tolerance
+
+    def physical(make, seed):  # the first draw from seed, seed + 100, ... that a physical assembly can show
+        return next(d for d in (make(np.random.default_rng(seed + 100 * i)) for i in range(20))
+                    if not passes_through(d, tol))
+
+    n_shift = n_axis = n_turn = n_clean = 0
     for seed in range(6):
         T = _pose(seed, mesh)
         img, box = _photo(lego["asm"], T, seed)
         clean = _report(lego, photo_edges(img, K, box), T, moves=True)
         n_clean += max(p.move_gain for p in clean) < PC.move_gain and not any(p.verdict == "displaced" for p in clean)
-        bad = shifted_part(lego["asm"], np.random.default_rng(seed))
+        bad = physical(lambda rng: shifted_part(lego["asm"], rng), seed)
         img, box = _photo(bad, T, seed)
         p = _report(lego, photo_edges(img, K, box), T, moves=True)[bad.defect["part"]]
         n_shift += p.verdict == "displaced"
         off = np.asarray(bad.defect["offset_mm"])
         axis = int(np.argmax(np.abs(off)))
         n_axis += p.move[:2] == ("+" if off[axis] > 0 else "-") + "xyz"[axis]
-        bad = rotated_part(lego["asm"], np.random.default_rng(seed))
+        bad = physical(lambda rng: rotated_part(lego["asm"], rng), seed)
         img, box = _photo(bad, T, seed)
         p = _report(lego, photo_edges(img, K, box), T, moves=True)[bad.defect["part"]]
         n_turn += p.verdict in ("displaced", "missing")
-        n_turned += p.verdict == "displaced" and p.move == "turned 90 deg about z"
     assert n_shift >= 5 and n_axis >= 5 and n_turn >= 5 and n_clean >= 5, (n_shift, n_axis, n_turn, n_clean)
-    assert n_turned >= 4, n_turned
 
 
 def _occluded_photo(asm, mesh, T, seed, k):

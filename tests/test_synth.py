@@ -11,12 +11,20 @@ pytest.importorskip("manifold3d")
 
 from pixie.eval import shape_metrics as metrics  # noqa: E402
 from pixie.geometry.camera import look_at, make_K  # noqa: E402
+from pixie.geometry.collide import part_solids  # noqa: E402
 from pixie.eval.datasets import BopDataset  # noqa: E402
 from pixie.geometry.mesh import from_arrays, load_mesh  # noqa: E402
 from pixie.pipeline.query import bbox_from_mask  # noqa: E402
 from pixie.geometry.render import Renderer  # noqa: E402
 from pixie.synth.assemblies import BRICK_H, STUD_PITCH, brick_part, lego_assembly, make_target_assembly  # noqa: E402
-from pixie.synth.defects import DEFECT_TYPES, apply_defect, make_defects, missing_part, shifted_part  # noqa: E402
+from pixie.synth.defects import (  # noqa: E402
+    DEFECT_TYPES,
+    apply_defect,
+    make_defects,
+    missing_part,
+    passes_through,
+    shifted_part,
+)
 from pixie.synth.photo import (  # noqa: E402
     DirectionalLight,
     LightRig,
@@ -87,6 +95,19 @@ def test_defect_operators_change_geometry(asm):
         assert 0.5 < iou < 0.995, (kind, iou)
     # The base plate is never the defective part.
     assert all(d.defect["part"] != 0 for d in make_defects(asm, 5, seed=2) if d.defect["type"] != "extra")
+
+
+def test_defects_never_pass_a_part_into_another():
+    """The benchmark's first assembly (seed 0) drawn without the physical check has a brick shifted into its
+    neighbour (its parts overlap ~4 mm deep, against the studs' ~0.9); the generator redraws it."""
+    tgt = make_target_assembly(0, 0)
+    tol = part_solids(tgt.to_parts_mesh()).tolerance
+    loose = make_defects(tgt, 6, seed=0, physical=False)
+    assert any(passes_through(d, tol) for d in loose)
+    kept = make_defects(tgt, 6, seed=0)
+    assert len(kept) == 6 and not any(passes_through(d, tol) for d in kept)
+    m = tgt.to_parts_mesh()  # the parts as closed solids, one part each (what a multi-body CAD file holds)
+    assert m.n_parts == len(tgt.parts) and all(part_solids(m).closed)
 
 
 def test_aps_target_vs_itself_and_shifted(asm):

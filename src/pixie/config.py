@@ -424,6 +424,9 @@ class PartsConfig(_Section):
     move_gain: float = 0.3
     move_changed: float = 0.3  # a move is judged when it changes this share of the part's visible contour pixels ...
     move_px: float = 4.0  # ... and shifts some vertex of the part by this many crop px (pose errors are smaller)
+    # ... and does not pass the part into another (pixie.geometry.collide: deeper than the CAD's own overlaps x 1.5;
+    # parts whose surface is not closed are never said to collide)
+    move_collide: bool = True
 
 
 _SECTION_NAMES[PartsConfig] = "parts"

@@ -45,6 +45,7 @@ import numpy as np
 from pixie.config import PART_KINDS, PartsConfig
 from pixie.cues.edge_align import align, edge_distances
 from pixie.cues.edge_photo import PhotoEdges
+from pixie.geometry.collide import PartSolids, collides, part_solids
 from pixie.geometry.mesh import Mesh, from_arrays
 from pixie.cues.part_moves import (MoveFit, explain_away, explained, move_evidence, near_maps, part_contours,
                                    part_moves)
@@ -113,7 +114,7 @@ def report_kwargs(pc: PartsConfig) -> tuple[dict, dict]:
     support = dict(fit_px=pc.fit_px, shift_frac=pc.shift_frac, min_points=pc.min_points, colour_ab=pc.colour_ab,
                    step_frac=pc.step_frac, kinds=tuple(PART_KINDS.index(k) for k in pc.kinds),
                    moves=pc.moves, min_visible=pc.min_visible, move_below=pc.move_below,
-                   move_changed=pc.move_changed, move_px=pc.move_px)
+                   move_changed=pc.move_changed, move_px=pc.move_px, move_collide=pc.move_collide)
     judge = dict(flag_below=pc.flag_below, colour_weight=pc.colour_weight, revealed_weight=pc.revealed_weight,
                  shift_weight=pc.shift_weight, supported_above=pc.supported_above, shift_gain=pc.shift_gain,
                  found_shifted=pc.found_shifted, min_points=pc.min_points, min_visible=pc.min_visible,
@@ -176,7 +177,7 @@ def part_support(renderer: Renderer, face_parts: np.ndarray, part_names, pe: Pho
                  max_points: int = 240, step_frac: float = 0.0, colour_ab: float = 12.0,
                  complements: list[tuple[Renderer, np.ndarray]] | None = None,
                  moves: bool = False, min_visible: float = 0.2, move_below: float = 0.9, move_changed: float = 0.3,
-                 move_px: float = 4.0) -> list[PartSupport]:
+                 move_px: float = 4.0, move_collide: bool = True, solids: PartSolids | None = None) -> list[PartSupport]:
     """Every part's support at pose ``T`` (verdicts not yet set: :func:`judge_parts`).
 
     Parameters
@@ -200,6 +201,8 @@ def part_support(renderer: Renderer, face_parts: np.ndarray, part_names, pe: Pho
         a support below ``move_below`` of the median part's
     move_changed, move_px : a move is judged when it changes at least ``move_changed`` x the part's visible contour
         pixels and shifts some vertex of it by ``move_px`` crop px (:func:`pixie.cues.part_moves.move_evidence`)
+    move_collide, solids : with ``move_collide``, moves that pass the part into another (:func:`collides` on the
+        parts' ``solids``, :func:`pixie.geometry.collide.part_solids`, made here when None) are not tried
     """
     face_parts = np.asarray(face_parts)
     n_parts = len(part_names)
@@ -270,7 +273,11 @@ def part_support(renderer: Renderer, face_parts: np.ndarray, part_names, pe: Pho
             k = p.index
             if (p.n_points >= min_points and p.visible >= min_visible and p.relative < move_below
                     and k < len(complements) and k < len(renderers)):
-                f = move_evidence(pe, T, k, complements[k], renderers[k], part_moves(whole, k), fit_px=fit_px,
+                tried = part_moves(whole, k)
+                if move_collide:
+                    solids = solids if solids is not None else part_solids(whole)
+                    tried = [(name, M) for name, M in tried if not collides(solids, k, M)]
+                f = move_evidence(pe, T, k, complements[k], renderers[k], tried, fit_px=fit_px,
                                   max_bin_gap=max_bin_gap, kinds=kinds, step_mm=step_mm, min_points=min_points,
                                   min_changed=max(min_points, int(np.ceil(move_changed * p.n_points))),
                                   min_px=move_px)
@@ -353,7 +360,7 @@ def robust_part_fit(renderer: Renderer, face_parts: np.ndarray, part_names, pe: 
                     align_kw: dict, support_kw: dict | None = None, judge_kw: dict | None = None,
                     renderers: list[Renderer] | None = None,
                     complements: list[tuple[Renderer, np.ndarray]] | None = None,
-                    ) -> tuple[np.ndarray, list[PartSupport], list[int]]:
+                    solids: PartSolids | None = None) -> tuple[np.ndarray, list[PartSupport], list[int]]:
     """The pose re-aligned without the parts the photo does not support, and the part report at it.
 
     The parts judged missing or displaced at ``T`` (:func:`part_support`, :func:`judge_parts`) are left out of a
@@ -370,16 +377,17 @@ def robust_part_fit(renderer: Renderer, face_parts: np.ndarray, part_names, pe: 
     renderers = renderers if renderers is not None else part_renderers(whole)
     complements = complements if complements is not None else complement_renderers(
         whole, smooth_normals=renderer.smooth_normals)
+    if support_kw.get("moves") and support_kw.get("move_collide", True) and solids is None:
+        solids = part_solids(whole)  # once for both reports
     ps = judge_parts(part_support(renderer, face_parts, part_names, pe, T, renderers=renderers,
-                                  complements=complements, **support_kw),
+                                  complements=complements, solids=solids, **support_kw),
                      **judge_kw)
     drop = [p.index for p in ps if p.verdict in SUSPECT_VERDICTS]
     if not drop or len(drop) >= sum(p.verdict != "not visible" for p in ps):
         return np.asarray(T, np.float64), ps, []
     res = align(renderer, pe, T, face_parts=face_parts, drop_parts=drop, **align_kw)
     ps2 = judge_parts(part_support(renderer, face_parts, part_names, pe, res.T_cam_from_obj, renderers=renderers,
-                                   complements=complements,
-                                   **support_kw), **judge_kw)
+                                   complements=complements, solids=solids, **support_kw), **judge_kw)
 
     def kept_median(parts: list[PartSupport]) -> float:
         vals = [p.support for p in parts if p.index not in drop and p.verdict != "not visible"]

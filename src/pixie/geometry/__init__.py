@@ -2,5 +2,5 @@
 
 Modules (imports go down this list): ``rotations`` (rotations, nearest-pixel lookups, the one image / mask rule),
 ``camera`` (pinhole camera, rigid poses, the one K parser and the one crop-intrinsics helper), ``mesh`` (meshes in
-mm), ``render`` (ray casting). The package ``__init__`` imports nothing: import the module.
+mm), ``collide`` (whether parts pass through each other), ``render`` (ray casting). The package ``__init__`` imports nothing: import the module.
 """

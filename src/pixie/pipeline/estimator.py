@@ -66,6 +66,7 @@ from pixie.pose.plausibility import pose_contradictions, pose_warnings
 from pixie.pipeline.query import QueryCrop, bbox_from_mask, check_bbox, check_query_mask, square_crop
 from pixie.references.set import ReferenceSet, add_features
 from pixie.cues.refine import aligned_correspondences, render_in_crop
+from pixie.geometry.collide import part_solids
 from pixie.geometry.render import Renderer
 from pixie.cues.edge_align import (align, align_kwargs, calibrated_confidence, confidence_size, edge_fit, flip_twins,
                                    photo_edges, photo_edges_kwargs)
@@ -187,6 +188,7 @@ class PoseEstimator:
         self._align_renderer = Renderer(refs.mesh, smooth_normals=True) if self.cfg.align.enabled else None
         self._part_renderers: list[Renderer] | None = None  # per part of the mesh, made on the first part report
         self._part_complements: list | None = None  # the mesh without each part (cues.parts.complement_renderers)
+        self._part_solids = None  # the parts' voxel solids for the move search (geometry.collide.part_solids)
         self._shape = None
         if self.cfg.shape.enabled:
             self._shape = shape_cues(refs, self.cfg.shape)
@@ -265,20 +267,23 @@ class PoseEstimator:
         if self._part_renderers is None:
             self._part_renderers = part_renderers(mesh)
             self._part_complements = complement_renderers(mesh, smooth_normals=ren.smooth_normals)
+        if pc.moves and pc.move_collide and self._part_solids is None:
+            self._part_solids = part_solids(mesh)
         support_kw, judge_kw = report_kwargs(pc)
         if pc.robust:
             if q.box_source == "prior":  # a grown search region, not the object's sides
                 align_kw["w_box"] = 0.0
             T, ps, dropped = robust_part_fit(ren, mesh.face_parts, mesh.part_names, q.photo_edges, res.T_cam_from_obj,
                                              align_kw=align_kw, support_kw=support_kw, judge_kw=judge_kw,
-                                             renderers=self._part_renderers, complements=self._part_complements)
+                                             renderers=self._part_renderers, complements=self._part_complements,
+                                             solids=self._part_solids)
             if dropped:
                 res.T_cam_from_obj = T
                 res.settings["parts_realigned_without"] = [mesh.part_names[k] for k in dropped]
         else:
             ps = judge_parts(part_support(ren, mesh.face_parts, mesh.part_names, q.photo_edges, res.T_cam_from_obj,
                                           renderers=self._part_renderers, complements=self._part_complements,
-                                          **support_kw), **judge_kw)
+                                          solids=self._part_solids, **support_kw), **judge_kw)
         res.part_support, res.parts = ps, [p.as_dict() for p in ps]
         res.timings["parts"] = time.perf_counter() - t
         return res

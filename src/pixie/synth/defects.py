@@ -18,6 +18,7 @@ from __future__ import annotations
 
 import numpy as np
 
+from pixie.geometry.collide import max_overlap_depth, part_solids
 from pixie.geometry.rotations import rodrigues
 from pixie.synth.assemblies import (
     Assembly,
@@ -41,6 +42,7 @@ __all__ = [
     "extra_part",
     "apply_defect",
     "make_defects",
+    "passes_through",
 ]
 
 
@@ -239,13 +241,23 @@ def apply_defect(asm: Assembly, kind: str, rng: np.random.Generator, part: int |
     return _OPS[kind](asm, rng, part)
 
 
-def make_defects(asm: Assembly, n: int, seed: int, types=DEFECT_TYPES, compound: float = 0.0) -> list[Assembly]:
+def passes_through(asm: Assembly, tolerance: float) -> bool:
+    """Whether two parts of ``asm`` overlap deeper than ``tolerance`` mm (:mod:`pixie.geometry.collide`): a part
+    moved into its neighbour, which no physical assembly can show."""
+    return len(asm.parts) > 1 and max_overlap_depth(part_solids(asm.to_parts_mesh())) > tolerance
+
+
+def make_defects(asm: Assembly, n: int, seed: int, types=DEFECT_TYPES, compound: float = 0.0,
+                 physical: bool = True) -> list[Assembly]:
     """``n`` defective variants of ``asm``, cycling through ``types`` (shuffled by ``seed``).
 
     With probability ``compound`` a variant gets a second defect of another type (stronger
     deviations; its ``defect`` is ``{type: 'a+b', steps: [first, second]}``). Variants whose mesh
-    equals an earlier one (e.g. a symmetric part rotated) are redrawn.
+    equals an earlier one (e.g. a symmetric part rotated) are redrawn, and with ``physical`` those in which a
+    part passes into another deeper than the target's own overlaps allow (a brick shifted into its neighbour:
+    :attr:`pixie.geometry.collide.PartSolids.tolerance`).
     """
+    tolerance = part_solids(asm.to_parts_mesh()).tolerance if physical and len(asm.parts) > 1 else np.inf
     rng = np.random.default_rng(seed)
     order = list(types)
     rng.shuffle(order)
@@ -267,6 +279,8 @@ def make_defects(asm: Assembly, n: int, seed: int, types=DEFECT_TYPES, compound:
             continue
         sig = _signature(d)
         if sig in seen:
+            continue
+        if kind != "missing" and passes_through(d, tolerance):
             continue
         seen.add(sig)
         d.name = f"{asm.name}_d{len(out) + 1}_{kind}"

@@ -99,22 +99,21 @@ def write_ply(path: Path, mesh: Mesh) -> None:
 
 
 def write_parts_glb(path: Path, asm: Assembly) -> None:
-    """The assembly's union mesh as a GLB with one named sub-mesh per part (``part_KK_<name>``, in mm).
-
-    The sub-meshes are the union's own triangles grouped by the part they came from, so
-    :func:`pixie.geometry.mesh.load_mesh` reads back the same solid with its parts
-    (``Mesh.face_parts``): the CAD-with-parts input of the part report.
+    """The assembly as a GLB with one named sub-mesh per part (``part_KK_<name>``, in mm), each part its own
+    closed solid where the assembly has it (:meth:`Assembly.to_parts_mesh`), as a multi-body CAD export holds
+    them: :func:`pixie.geometry.mesh.load_mesh` reads it back with its parts (``Mesh.face_parts``), the
+    CAD-with-parts input of the part report.
     """
     import trimesh
 
-    mesh, part_of = asm.to_mesh_with_part_ids()
+    mesh = asm.to_parts_mesh()
     scene = trimesh.Scene()
-    for k, part in enumerate(asm.parts):
-        sel = part_of == k
-        if not sel.any():  # a part entirely inside others leaves no surface
-            continue
-        name = f"part_{k:02d}_{part.name}"
-        scene.add_geometry(trimesh.Trimesh(mesh.vertices, mesh.faces[sel], process=False),
+    for k, name in enumerate(mesh.part_names):
+        faces = mesh.faces[mesh.face_parts == k]
+        used = np.unique(faces)
+        remap = np.zeros(len(mesh.vertices), np.int64)
+        remap[used] = np.arange(len(used))
+        scene.add_geometry(trimesh.Trimesh(mesh.vertices[used], remap[faces], process=False),
                            node_name=name, geom_name=name)
     scene.export(str(path), file_type="glb")
 
