@@ -92,7 +92,8 @@ def target_estimates(journal: Path, data: Path, cfg: PixieConfig) -> dict[tuple[
     return out
 
 
-def analyse(data: Path, ests: dict, cfg: PixieConfig, echo=print, use_mask: bool = False) -> list[dict]:
+def analyse(data: Path, ests: dict, cfg: PixieConfig, echo=print, use_mask: bool = False,
+            parts_dir: str = "models_parts") -> list[dict]:
     ds = BopDataset(data)
     variants = {v["scene_id"]: v for v in json.loads((data / "variants.json").read_text())}
     support_kw, judge_kw, align_kw = _kw(cfg)
@@ -104,7 +105,7 @@ def analyse(data: Path, ests: dict, cfg: PixieConfig, echo=print, use_mask: bool
         v = variants[sid]
         oid = v["obj_id"]
         if oid not in models:
-            m = load_mesh(data / "models_parts" / f"obj_{oid:06d}.glb")
+            m = load_mesh(data / parts_dir / f"obj_{oid:06d}.glb")
             models[oid] = (m, Renderer(m, smooth_normals=True), part_renderers(m),
                            complement_renderers(m, smooth_normals=True), part_solids(m))
         mesh, ren, prs, comps, solids = models[oid]
@@ -242,6 +243,9 @@ def main(argv=None) -> int:
     ap.add_argument("--reuse", action="store_true", help="re-score the rows of an existing --out (no computation)")
     ap.add_argument("--mask", action="store_true", help="the part report inside the GT visible mask (as with "
                     "`pixie inspect --mask`): occluders in front of the assembly are then known")
+    ap.add_argument("--parts-dir", default="models_parts", help="the part models under --data: models_parts (the "
+                    "union's triangles by part) or models_parts_solid (every part a closed solid: moves are checked "
+                    "for collisions)")
     args = ap.parse_args(argv)
     cfg = PixieConfig.from_preset(args.preset).apply_overrides(args.set)
     if args.reuse and args.out.is_file():
@@ -251,7 +255,7 @@ def main(argv=None) -> int:
         for j in args.estimates:
             ests.update(target_estimates(j, args.data, cfg))
         print(f"{len(ests)} target-model estimates")
-        rows = analyse(args.data, ests, cfg, use_mask=args.mask)
+        rows = analyse(args.data, ests, cfg, use_mask=args.mask, parts_dir=args.parts_dir)
     fit = [r for r in rows if r["im_id"] % 2 == 0]
     rep = [r for r in rows if r["im_id"] % 2 == 1]
     chosen4 = choose(fit, cfg)  # the session-11 rule, without 3D moves

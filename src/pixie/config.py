@@ -416,9 +416,9 @@ class PartsConfig(_Section):
     found_shifted: float = 0.97  # ... to at least this share of the median part's support)
     # 3D moves (pixie.cues.part_moves: along / about the model's axes) of the parts supported less than move_below x
     # the median part; 'displaced' when the best move gains move_gain of support where its contour differs. Off by
-    # default: on the defects benchmark's report half shifted parts are found 0.54 -> 0.88 but false alarms rise
-    # 0.21 -> 0.29 (move_gain 0.3), and a present part behind an occluder is flagged by the lower gains the rule picks
-    # (bench/RESULTS.md "Part verdicts, session 15"). --set parts.moves=true turns it on
+    # default: on the physical defects benchmark's report half shifted parts are found 0.61 -> 0.72 but false alarms
+    # rise 0.21 -> 0.29 (move_gain 0.3; flips of bricks whose studs the photo cannot resolve), and the rule picks no
+    # threshold (bench/RESULTS.md "Session 16"). --set parts.moves=true turns it on
     moves: bool = False
     move_below: float = 0.9
     move_gain: float = 0.3

@@ -6,7 +6,9 @@
       models/obj_OOOOOO.ply, models/models_info.json     target models (ids 1..A), mm, centred
       models_defective/obj_OOOOOO.ply (+ models_info.json) defective variants (ids 100*a + k)
       models_defective/defective_models.json             defective id -> {target_obj_id, defect, ...}
-      models_parts/obj_OOOOOO.glb                        target models with one sub-mesh per part
+      models_parts/obj_OOOOOO.glb                        target models with one sub-mesh per part (the union's
+                                                         triangles by part, as in sessions 10-15)
+      models_parts_solid/obj_OOOOOO.glb                  the same with every part its own closed solid
       camera.json                                        640x480, fx ~ fy ~ 600, depth_scale 0.1
       test/SSSSSS/{rgb,depth,mask,mask_visib}/ ...        rgb PNG, depth uint16 (x 0.1 mm)
       test/SSSSSS/scene_gt.json, scene_camera.json, scene_gt_info.json
@@ -98,23 +100,37 @@ def write_ply(path: Path, mesh: Mesh) -> None:
         fh.write(faces.tobytes())
 
 
-def write_parts_glb(path: Path, asm: Assembly) -> None:
-    """The assembly as a GLB with one named sub-mesh per part (``part_KK_<name>``, in mm), each part its own
-    closed solid where the assembly has it (:meth:`Assembly.to_parts_mesh`), as a multi-body CAD export holds
-    them: :func:`pixie.geometry.mesh.load_mesh` reads it back with its parts (``Mesh.face_parts``), the
-    CAD-with-parts input of the part report.
+def write_parts_glb(path: Path, asm: Assembly, solids: bool = True) -> None:
+    """The assembly as a GLB with one named sub-mesh per part (``part_KK_<name>``, in mm), read back by
+    :func:`pixie.geometry.mesh.load_mesh` with its parts (``Mesh.face_parts``): the CAD-with-parts input of the part
+    report.
+
+    ``solids``: every part its own closed solid where the assembly has it (:meth:`Assembly.to_parts_mesh`), as a
+    multi-body CAD export holds them (what :mod:`pixie.geometry.collide` needs); else the union's triangles grouped
+    by the part they came from (sessions 10-15's benchmark files: a part's surface is open where it touches
+    another).
     """
     import trimesh
 
-    mesh = asm.to_parts_mesh()
     scene = trimesh.Scene()
-    for k, name in enumerate(mesh.part_names):
-        faces = mesh.faces[mesh.face_parts == k]
-        used = np.unique(faces)
-        remap = np.zeros(len(mesh.vertices), np.int64)
-        remap[used] = np.arange(len(used))
-        scene.add_geometry(trimesh.Trimesh(mesh.vertices[used], remap[faces], process=False),
-                           node_name=name, geom_name=name)
+    if solids:
+        mesh = asm.to_parts_mesh()
+        for k, name in enumerate(mesh.part_names):
+            faces = mesh.faces[mesh.face_parts == k]
+            used = np.unique(faces)
+            remap = np.zeros(len(mesh.vertices), np.int64)
+            remap[used] = np.arange(len(used))
+            scene.add_geometry(trimesh.Trimesh(mesh.vertices[used], remap[faces], process=False),
+                               node_name=name, geom_name=name)
+    else:
+        mesh, part_of = asm.to_mesh_with_part_ids()
+        for k, part in enumerate(asm.parts):
+            sel = part_of == k
+            if not sel.any():  # a part entirely inside others leaves no surface
+                continue
+            name = f"part_{k:02d}_{part.name}"
+            scene.add_geometry(trimesh.Trimesh(mesh.vertices, mesh.faces[sel], process=False),
+                               node_name=name, geom_name=name)
     scene.export(str(path), file_type="glb")
 
 
@@ -408,6 +424,7 @@ def generate_defect_dataset(
     (out / "models").mkdir(parents=True, exist_ok=True)
     (out / "models_defective").mkdir(parents=True, exist_ok=True)
     (out / "models_parts").mkdir(parents=True, exist_ok=True)
+    (out / "models_parts_solid").mkdir(parents=True, exist_ok=True)
     K = default_K() if (width, height) == (WIDTH, HEIGHT) else make_K(600.0 * width / WIDTH, 600.0 * width / WIDTH,
                                                                      (width - 1) / 2, (height - 1) / 2)
     targets, defects, variants = build_variants(n_assemblies, n_defects, n_colour_variants, seed, full_product,
@@ -422,7 +439,8 @@ def generate_defect_dataset(
         m = tgt.to_mesh()
         target_meshes[a + 1] = m
         write_ply(out / "models" / f"obj_{a + 1:06d}.ply", m)
-        write_parts_glb(out / "models_parts" / f"obj_{a + 1:06d}.glb", tgt)
+        write_parts_glb(out / "models_parts" / f"obj_{a + 1:06d}.glb", tgt, solids=False)
+        write_parts_glb(out / "models_parts_solid" / f"obj_{a + 1:06d}.glb", tgt)
         info_t[str(a + 1)] = _model_info(m)
         for k, d in enumerate(defects[a], start=1):
             did = 100 * (a + 1) + k
