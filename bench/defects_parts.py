@@ -107,7 +107,8 @@ def analyse(data: Path, ests: dict, cfg: PixieConfig, echo=print, use_mask: bool
         if oid not in models:
             m = load_mesh(data / parts_dir / f"obj_{oid:06d}.glb")
             models[oid] = (m, Renderer(m, smooth_normals=True), part_renderers(m),
-                           complement_renderers(m, smooth_normals=True), part_solids(m))
+                           complement_renderers(m, smooth_normals=True),
+                           part_solids(m) if cfg.parts.moves and cfg.parts.move_collide else None)
         mesh, ren, prs, comps, solids = models[oid]
         phys = data / v["model_dir"] / f"obj_{v['model_obj_id']:06d}.ply"
         if str(phys) not in phys_pts:

@@ -37,7 +37,7 @@ class PartSolids:
     points : per part, (N_k, 3) voxel centres inside the part (at most ``MAX_PART_POINTS``)
     depth : per part, (N_k,) their distance to the part's surface
     occupancy : per part, (lo (3,) int, (nx, ny, nz) bool): the voxels inside it, over its own index range
-    surface : per part, a KD-tree of points on its surface (distances to it)
+    surface : per part, a KD-tree of points on its surface (distances to it); None for a part not closed
     closed : per part, whether its surface is closed (a part that is not is never said to collide)
     tolerance : overlaps up to this depth are contacts (the CAD assembly's own deepest overlap x 1.5, at least
         1.5 voxels)
@@ -81,16 +81,16 @@ def part_solids(mesh: Mesh, cells: int = GRID_CELLS, max_points: int = MAX_PART_
     pts_l, dep_l, occ_l, surf_l, closed_l = [], [], [], [], []
     for k in range(mesh.n_parts):
         tm = _part_trimesh(mesh, k)
-        n_s = int(np.clip(tm.area / (0.5 * pitch) ** 2, 2000, 60000)) if len(tm.faces) else 0
-        surf = np.vstack([tm.vertices, tm.sample(n_s, seed=k)]) if n_s else np.zeros((1, 3))
-        surf_l.append(cKDTree(surf))
         closed = bool(len(tm.faces)) and bool(tm.is_watertight)
         closed_l.append(closed)
-        if not closed:
+        if not closed:  # never tested (overlap_depth): no solid, no surface
             pts_l.append(np.zeros((0, 3)))
             dep_l.append(np.zeros(0))
             occ_l.append((np.zeros(3, int), np.zeros((0, 0, 0), bool)))
+            surf_l.append(None)
             continue
+        n_s = int(np.clip(tm.area / (0.5 * pitch) ** 2, 2000, 60000))
+        surf_l.append(cKDTree(np.vstack([tm.vertices, tm.sample(n_s, seed=k)])))
         lo = np.floor((tm.bounds[0] - origin) / pitch).astype(int)
         hi = np.ceil((tm.bounds[1] - origin) / pitch).astype(int) + 1
         axes = [origin[a] + pitch * np.arange(lo[a], hi[a]) for a in range(3)]

@@ -112,25 +112,19 @@ def write_parts_glb(path: Path, asm: Assembly, solids: bool = True) -> None:
     """
     import trimesh
 
+    if not solids:
+        union, part_of = asm.to_mesh_with_part_ids()
     scene = trimesh.Scene()
-    if solids:
-        mesh = asm.to_parts_mesh()
-        for k, name in enumerate(mesh.part_names):
-            faces = mesh.faces[mesh.face_parts == k]
-            used = np.unique(faces)
-            remap = np.zeros(len(mesh.vertices), np.int64)
-            remap[used] = np.arange(len(used))
-            scene.add_geometry(trimesh.Trimesh(mesh.vertices[used], remap[faces], process=False),
-                               node_name=name, geom_name=name)
-    else:
-        mesh, part_of = asm.to_mesh_with_part_ids()
-        for k, part in enumerate(asm.parts):
+    for k, part in enumerate(asm.parts):
+        if solids:
+            v, f = part.placed_vertices(), part.mesh.faces
+        else:
             sel = part_of == k
             if not sel.any():  # a part entirely inside others leaves no surface
                 continue
-            name = f"part_{k:02d}_{part.name}"
-            scene.add_geometry(trimesh.Trimesh(mesh.vertices, mesh.faces[sel], process=False),
-                               node_name=name, geom_name=name)
+            v, f = union.vertices, union.faces[sel]
+        name = f"part_{k:02d}_{part.name}"
+        scene.add_geometry(trimesh.Trimesh(v, f, process=False), node_name=name, geom_name=name)
     scene.export(str(path), file_type="glb")
 
 
