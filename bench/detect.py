@@ -2,15 +2,17 @@
 
 Usage::
 
-    PYTHONPATH=src .venv/bin/python bench/detect.py [--max-targets 96] [--distance 340,1500] [--top 5] \
-        [--rerank 30] [--out out/bench/detect.json]
+    PYTHONPATH=src .venv/bin/python bench/detect.py [--dataset DIR] [--max-targets 96] [--distance 340,1500] \
+        [--top 5] [--grow 1.3] [--verify] [--exclude 48] [--rerank 30] [--out out/bench/detect.json]
 
 Per target: the reference set's contour templates (the preset's set, from the bench cache), rolled and scaled to
 the distance range, searched over the whole photo; the best ``--top`` boxes after non-maximum suppression are
 compared with the GT amodal box (``bbox_obj``) and the visible box (``bbox_visib``), IoU >= 0.5. Prints one table
 (per object and all: recall of the best proposal and of the top 5, seconds per image for the search) and writes it
-as JSON. No pose is estimated (the verification of :func:`pixie.pipeline.find.find_objects` is not measured here),
-except with ``--rerank N``: the best N proposals are each aligned from the pose their template stands for
+as JSON. With ``--verify`` the whole search of :func:`pixie.pipeline.find.find_objects` runs instead (its ``--top``
+proposals each estimated, the most confident supported pose kept): the table adds the share of targets found, found
+with the kept pose's projected box at IoU >= 0.5 with the amodal box, and with that pose ADD(-S) < 0.1 d, and the
+seconds per image of the whole search. With ``--rerank N``: the best N proposals are each aligned from the pose their template stands for
 (:meth:`TemplateDetector.pose`, :meth:`PoseEstimator.estimate_from_prior`) and re-ranked by the aligned fit; the table
 adds the recall of that order (the aligned pose's projected box, IoU >= 0.5 with the amodal box) and the JSON every
 proposal's terms.
@@ -32,6 +34,7 @@ from pixie.config import PixieConfig  # noqa: E402
 from pixie.cues.detect import TemplateDetector  # noqa: E402
 from pixie.errors import PixieError  # noqa: E402
 from pixie.pipeline.estimator import PoseEstimator  # noqa: E402
+from pixie.pipeline.find import detector_for, find_objects  # noqa: E402
 from pixie.pose.solve import box_iou, projected_box  # noqa: E402
 from pixie.references.templates import ContourTemplates  # noqa: E402
 
@@ -53,6 +56,12 @@ def main(argv=None) -> int:
                     help="also align each of the best N proposals from its template's pose "
                          "(PoseEstimator.estimate_from_prior) and rank them by the aligned fit")
     ap.add_argument("--nms", type=float, default=0.3, help="non-maximum suppression IoU of the proposals")
+    ap.add_argument("--grow", type=float, default=1.3,
+                    help="a suppressed box survives when its area is more than this times the better box's (0: never)")
+    ap.add_argument("--exclude", type=int, default=0, metavar="N",
+                    help="leave out the targets --max-targets N would pick (the set a parameter was chosen on)")
+    ap.add_argument("--verify", action="store_true",
+                    help="run find_objects (proposals, each estimated, the supported pose kept) and score its pose")
     ap.add_argument("--threshold", type=float, default=70.0, help="LINE-2D similarity threshold (0-100)")
     args = ap.parse_args(argv)
     ds = L.BopDataset(args.dataset)
@@ -60,35 +69,61 @@ def main(argv=None) -> int:
     cfg = PixieConfig.from_preset(args.preset)
     dist = tuple(float(v) for v in args.distance.split(","))
     targets = L.select_targets(ds, args.max_targets)
+    if args.exclude:  # leave out the targets a parameter was chosen on
+        chosen = {(t.scene_id, t.im_id, t.obj_id) for t in L.select_targets(ds, args.exclude)}
+        targets = [t for t in targets if (t.scene_id, t.im_id, t.obj_id) not in chosen]
     matcher = None
     ests: dict[int, PoseEstimator] = {}
     rows, per = [], {}
     dets: dict[int, TemplateDetector] = {}  # every object's, kept: targets come image by image
-    for t in targets:
-        if t.obj_id not in dets:
+    grow = args.grow if args.grow > 0 else None
+    det_kw = dict(distance_mm=dist, cache_dir=L.REPO / "out/bench/line2d")
+
+    def estimator(oid: int) -> PoseEstimator:
+        nonlocal matcher
+        if oid not in ests:
             matcher = matcher or make_matcher(cfg)
-            refs = objects.refs(cfg, t.obj_id, matcher)
-            K0 = ds.camera(t.scene_id, t.im_id).K
+            ests[oid] = PoseEstimator(objects.refs(cfg, oid, matcher), cfg, matcher)
+        return ests[oid]
+
+    for t in targets:
+        K = ds.camera(t.scene_id, t.im_id).K
+        if t.obj_id not in dets:
             t0 = time.perf_counter()
-            dets[t.obj_id] = (TemplateDetector(ContourTemplates.from_arrays(refs.templates), K0,
-                                               diameter=refs.mesh.diameter, distance_mm=dist,
-                                               cache_dir=L.REPO / "out/bench/line2d"))
+            if args.verify:  # the detector find_objects uses (cached on the estimator)
+                dets[t.obj_id] = detector_for(estimator(t.obj_id), K, **det_kw)
+            else:
+                matcher = matcher or make_matcher(cfg)
+                refs = objects.refs(cfg, t.obj_id, matcher)
+                dets[t.obj_id] = TemplateDetector(ContourTemplates.from_arrays(refs.templates), K,
+                                                  diameter=refs.mesh.diameter, **det_kw)
             print(f"obj {t.obj_id}: {dets[t.obj_id].n_templates} templates in {time.perf_counter() - t0:.1f} s",
                   flush=True)
         g = L.gt_instance(ds, t)
         img = ds.load_rgb(t.scene_id, t.im_id)
+        verified = {}
         t0 = time.perf_counter()
-        K = ds.camera(t.scene_id, t.im_id).K
-        props = dets[t.obj_id].propose(img, top_k=max(args.top, args.rerank), nms_iou=args.nms,
-                                       threshold=args.threshold)
-        dt = time.perf_counter() - t0
+        if args.verify:
+            found = find_objects(estimator(t.obj_id), img, K, top_k=args.top, nms_iou=args.nms, grow_ratio=grow,
+                                 threshold=args.threshold, **det_kw)
+            props, dt = found.proposals, found.timings["propose"]
+            best = found.poses[0] if found.poses else None
+            T = None if best is None else best.T_cam_from_obj
+            e = L.pose_errors(objects.eval_data(t.obj_id), T, g.T_cam_from_obj)
+            iou_pose = 0.0 if T is None else box_iou(projected_box(T, K, estimator(t.obj_id).box_points),
+                                                      xyxy(g.box_obj))
+            verified = {"found": found.found, "found_box": bool(iou_pose >= 0.5), "found_add": e["add_ok"],
+                        "iou_pose": iou_pose, "confidence": None if best is None else best.confidence,
+                        "seconds_find": found.timings["total"], "verdicts": found.verdicts}
+        else:
+            props = dets[t.obj_id].propose(img, top_k=max(args.top, args.rerank), nms_iou=args.nms,
+                                           grow_ratio=grow, threshold=args.threshold)
+            dt = time.perf_counter() - t0
         box_obj = xyxy(g.box_obj)
         amodal = [box_iou(p.box_xyxy, box_obj) for p in props]  # every proposal's, the best --top ones reported below
         cands = []
         if args.rerank:
-            est = ests.get(t.obj_id)
-            if est is None:
-                est = ests[t.obj_id] = PoseEstimator(objects.refs(cfg, t.obj_id, matcher), cfg, matcher)
+            est = estimator(t.obj_id)
             t1 = time.perf_counter()
             for p, iou in zip(props[: args.rerank], amodal):
                 T0 = dets[t.obj_id].pose(p, K, est.refs.mesh.center, est.box_points)
@@ -106,7 +141,8 @@ def main(argv=None) -> int:
         visib = [box_iou(p.box_xyxy, xyxy(g.box_visib)) for p in props]
         r = {"target": [t.scene_id, t.im_id, t.obj_id], "visib_fract": g.visib_fract, "seconds": dt,
              "top1": bool(amodal[:1] and amodal[0] >= 0.5), "topk": bool(max(amodal, default=0) >= 0.5),
-             "top1_visib": bool(visib[:1] and visib[0] >= 0.5), "topk_visib": bool(max(visib, default=0) >= 0.5)}
+             "top1_visib": bool(visib[:1] and visib[0] >= 0.5), "topk_visib": bool(max(visib, default=0) >= 0.5),
+             **verified}
         if args.rerank:
             r["candidates"] = cands
             r["seconds_rerank"] = dt_rerank
@@ -117,18 +153,27 @@ def main(argv=None) -> int:
             r["any_of_n"] = bool(any(c["iou"] >= 0.5 for c in cands))
         rows.append(r)
         per.setdefault(t.obj_id, []).append(r)
-        extra = (f"; re-ranked top-1 {r['rerank_top1']}, top-{args.top} {r['rerank_topk']}, in the {args.rerank}: "
-                 f"{r['any_of_n']} ({dt_rerank:.1f} s)") if args.rerank else ""
+        extra = ""
+        if args.verify:
+            extra = (f"; found {found.found} (box {verified['found_box']}, ADD {verified['found_add']}, "
+                     f"{verified['seconds_find']:.1f} s)")
+        if args.rerank:
+            extra += (f"; re-ranked top-1 {r['rerank_top1']}, top-{args.top} {r['rerank_topk']}, "
+                      f"in the {args.rerank}: {r['any_of_n']} ({dt_rerank:.1f} s)")
         print(f"  {len(rows)}/{len(targets)} {t.scene_id}/{t.im_id} obj {t.obj_id}: best IoU {max(amodal, default=0):.2f} "
               f"(visible {max(visib, default=0):.2f}), {dt:.1f} s{extra}", flush=True)
     def line(name, rs):
         m = lambda k: np.mean([r[k] for r in rs])  # noqa: E731
         s = (f"| {name} | {len(rs)} | {m('top1'):.2f} | {m('topk'):.2f} | {m('top1_visib'):.2f} | "
              f"{m('topk_visib'):.2f} | {np.mean([r['seconds'] for r in rs]):.2f} |")
+        if args.verify:
+            s += f" {m('found'):.2f} | {m('found_box'):.2f} | {m('found_add'):.2f} | {m('seconds_find'):.1f} |"
         if args.rerank:
             s += f" {m('any_of_n'):.2f} | {m('rerank_top1'):.2f} | {m('rerank_topk'):.2f} | {m('seconds_rerank'):.2f} |"
         return s
     head = f"| object | n | best proposal (amodal box) | top {args.top} | best (visible box) | top {args.top} | s/image |"
+    if args.verify:
+        head += " found | found, box IoU >= 0.5 | found, ADD(-S) < 0.1 d | s/image (whole search) |"
     if args.rerank:
         head += (f" any of the {args.rerank} | re-ranked by aligned fit: best (aligned box) | top {args.top} | "
                  f"s/image (alignment) |")

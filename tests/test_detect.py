@@ -175,3 +175,18 @@ def test_two_instances_give_two_poses(query_est, proc_mesh, scene_parts, line2d_
         both += len(fr.poses) == 2
         right += good
     assert both >= 2 and right >= 7, (both, right)
+
+
+def test_a_part_of_the_object_does_not_hide_the_whole():
+    """Non-maximum suppression (TemplateDetector.propose): a box overlapping a better one is dropped, unless it is
+    more than ``grow_ratio`` times larger (the whole object around a part whose scaled-down template fired first)."""
+    from pixie.cues.detect import _suppresses
+
+    part, whole = np.array([40.0, 40.0, 100.0, 100.0]), np.array([0.0, 0.0, 100.0, 100.0])
+    assert box_iou(part, whole) == pytest.approx(0.36)  # 3600 / 10000, hand-computed
+    assert not _suppresses(part, whole, 0.3, 1.3)  # area ratio 2.78: the whole survives its part
+    assert _suppresses(part, whole, 0.3, None)  # plain suppression: it would not
+    assert _suppresses(whole, part, 0.3, 1.3)  # a part inside a better whole is dropped as before
+    near = np.array([0.0, 0.0, 100.0, 120.0])  # IoU 0.83, area ratio 1.2: the same place at about the same scale
+    assert _suppresses(whole, near, 0.3, 1.3) and not _suppresses(whole, near, 0.3, 1.1)
+    assert not _suppresses(whole, np.array([200.0, 0.0, 300.0, 100.0]), 0.3, 1.3)  # apart

@@ -73,9 +73,13 @@ def _without(image: np.ndarray, mask: np.ndarray) -> np.ndarray:
 
 
 def find_objects(est, image: np.ndarray, K: np.ndarray, top_k: int = 3, max_instances: int = 1,
-                 min_confidence: float = 0.5, min_box_iou: float = 0.5,
+                 min_confidence: float = 0.5, min_box_iou: float = 0.5, threshold: float = 70.0,
+                 nms_iou: float = 0.3, grow_ratio: float | None = 1.3,
                  progress: Callable[[str], None] | None = None, **detector_kw) -> FindResult:
     """Propose, estimate each of the ``top_k`` proposals, keep the supported poses (see the module docstring).
+
+    ``threshold``, ``nms_iou`` and ``grow_ratio`` go to :meth:`TemplateDetector.propose`, the other keywords to
+    :class:`TemplateDetector`.
 
     With ``max_instances`` > 1 the search is repeated: the photo's pixels covered by the instances found so far
     (their rendered masks, grown by 4 px) are filled in from their surroundings, the filled photo is searched again
@@ -93,7 +97,8 @@ def find_objects(est, image: np.ndarray, K: np.ndarray, top_k: int = 3, max_inst
     search, covered = image, np.zeros(image.shape[:2], bool)
     for _round in range(n_max):
         t = time.perf_counter()
-        props = [p for p in det.propose(search, top_k=top_k)
+        props = [p for p in det.propose(search, top_k=top_k, threshold=threshold, nms_iou=nms_iou,
+                                        grow_ratio=grow_ratio)
                  if not any(box_iou(p.box_xyxy, q) >= 0.5 for _, q in kept)]
         t_propose += time.perf_counter() - t
         n_before = len(kept)
