@@ -120,6 +120,16 @@ def test_find_gives_the_pose_or_not_found(query_est, proc_mesh, scene_parts, lin
     assert json.loads(json.dumps(none.to_dict()))["found"] is False
 
 
+def test_find_stops_once_a_confident_pose_is_kept(query_est, proc_mesh, scene_parts, line2d_cache):
+    """stop_confidence: the proposals after a pose kept at that confidence are listed but not estimated (seed 1: its
+    best proposal is kept, see the test above)."""
+    img, _ = scene(proc_mesh, scene_parts, 1)
+    kw = dict(top_k=3, distance_mm=distance(proc_mesh), cache_dir=line2d_cache / "pixie" / "line2d")
+    fr = find_objects(query_est, img, K, stop_confidence=0.5, **kw)
+    assert fr.found and fr.verdicts[0] == "kept" and fr.poses[0].confidence >= 0.5
+    assert len(fr.proposals) == 3 and all(v.startswith("not estimated") for v in fr.verdicts[1:]), fr.verdicts
+
+
 def test_cli_detect_writes_found_false_and_exits_0(query_est, proc_mesh, scene_parts, line2d_cache, tmp_path,
                                                    monkeypatch):
     from pixie.references.store import save_reference_set

@@ -74,12 +74,13 @@ def _without(image: np.ndarray, mask: np.ndarray) -> np.ndarray:
 
 def find_objects(est, image: np.ndarray, K: np.ndarray, top_k: int = 3, max_instances: int = 1,
                  min_confidence: float = 0.5, min_box_iou: float = 0.5, threshold: float = 70.0,
-                 nms_iou: float = 0.3, grow_ratio: float | None = 1.3,
+                 nms_iou: float = 0.3, grow_ratio: float | None = 1.3, stop_confidence: float | None = None,
                  progress: Callable[[str], None] | None = None, **detector_kw) -> FindResult:
     """Propose, estimate each of the ``top_k`` proposals, keep the supported poses (see the module docstring).
 
     ``threshold``, ``nms_iou`` and ``grow_ratio`` go to :meth:`TemplateDetector.propose`, the other keywords to
-    :class:`TemplateDetector`.
+    :class:`TemplateDetector`. With ``stop_confidence``, the remaining proposals are not estimated once
+    ``max_instances`` poses are kept at that confidence or more (their verdict says so).
 
     With ``max_instances`` > 1 the search is repeated: the photo's pixels covered by the instances found so far
     (their rendered masks, grown by 4 px) are filled in from their surroundings, the filled photo is searched again
@@ -103,9 +104,12 @@ def find_objects(est, image: np.ndarray, K: np.ndarray, top_k: int = 3, max_inst
         t_propose += time.perf_counter() - t
         n_before = len(kept)
         for p in props:
-            if progress is not None:
-                progress(f"proposal {len(props_all) + 1}")
             props_all.append(p)
+            if stop_confidence is not None and sum(r.confidence >= stop_confidence for r, _ in kept) >= n_max:
+                verdicts.append(f"not estimated: {n_max} kept at confidence >= {stop_confidence:.2f}")
+                continue
+            if progress is not None:
+                progress(f"proposal {len(props_all)}")
             verdicts.append(_verify(est, image, K, p, kept, min_confidence, min_box_iou))
         if len(kept) >= n_max or len(kept) == n_before:
             break
