@@ -254,9 +254,9 @@ class TemplateDetector:
         """The ``top_k`` best distinct boxes of RGB ``image``, best first.
 
         Non-maximum suppression: a box overlapping a better one by IoU >= ``nms_iou`` is dropped, unless its area is
-        more than ``grow_ratio`` times the better box's (``None``: plain suppression). A template scaled down to a part of
-        the object often fires on that part's edges above the whole object's template: plain suppression would
-        then let the part hide the whole (on the defects benchmark's first 48 targets, the right box among the
+        more than ``grow_ratio`` times the better box's (``None``: plain suppression). A template scaled down to a
+        part of the object often fires on that part's edges above the whole object's template: plain suppression
+        would then let the part hide the whole (on the defects benchmark's first 48 targets, the right box among the
         best 5: 0.62 with plain suppression, 0.90 with ``grow_ratio`` 1.3; bench/RESULTS.md, "Detection").
         """
         bgr = np.ascontiguousarray(image[..., ::-1])
