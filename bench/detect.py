@@ -59,8 +59,8 @@ def main(argv=None) -> int:
     ap.add_argument("--nms", type=float, default=0.3, help="non-maximum suppression IoU of the proposals")
     ap.add_argument("--grow", type=float, default=1.3,
                     help="a suppressed box survives when its area is more than this times the better box's (0: never)")
-    ap.add_argument("--stop-confidence", type=float, default=None,
-                    help="--verify: estimate no more proposals once a pose is kept at this confidence")
+    ap.add_argument("--stop-confidence", type=float, default=0.9,
+                    help="--verify: estimate no more proposals once a pose is kept at this confidence (0: never stop)")
     ap.add_argument("--gt-box", action="store_true",
                     help="also estimate each target from its GT visible box (the same code's GT-box ADD(-S))")
     ap.add_argument("--exclude", type=int, default=0, metavar="N",
@@ -110,7 +110,7 @@ def main(argv=None) -> int:
         t0 = time.perf_counter()
         if args.verify:
             found = find_objects(estimator(t.obj_id), img, K, top_k=args.top, nms_iou=args.nms, grow_ratio=grow,
-                                 threshold=args.threshold, stop_confidence=args.stop_confidence, **det_kw)
+                                 threshold=args.threshold, stop_confidence=args.stop_confidence or None, **det_kw)
             props, dt = found.proposals, found.timings["propose"]
             best = found.poses[0] if found.poses else None
             T = None if best is None else best.T_cam_from_obj

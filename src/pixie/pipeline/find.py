@@ -74,13 +74,15 @@ def _without(image: np.ndarray, mask: np.ndarray) -> np.ndarray:
 
 def find_objects(est, image: np.ndarray, K: np.ndarray, top_k: int = 3, max_instances: int = 1,
                  min_confidence: float = 0.5, min_box_iou: float = 0.5, threshold: float = 70.0,
-                 nms_iou: float = 0.3, grow_ratio: float | None = 1.3, stop_confidence: float | None = None,
+                 nms_iou: float = 0.3, grow_ratio: float | None = 1.3, stop_confidence: float | None = 0.9,
                  progress: Callable[[str], None] | None = None, **detector_kw) -> FindResult:
     """Propose, estimate each of the ``top_k`` proposals, keep the supported poses (see the module docstring).
 
     ``threshold``, ``nms_iou`` and ``grow_ratio`` go to :meth:`TemplateDetector.propose`, the other keywords to
-    :class:`TemplateDetector`. With ``stop_confidence``, the remaining proposals are not estimated once
-    ``max_instances`` poses are kept at that confidence or more (their verdict says so).
+    :class:`TemplateDetector`. The remaining proposals are not estimated once ``max_instances`` poses are kept at
+    ``stop_confidence`` or more (their verdict says so; ``None``: every proposal is estimated). On 56 held-out photos
+    of the defects benchmark, 0.9 skipped 87 of 274 estimates with the same result for every photo (bench/RESULTS.md,
+    "Session 17").
 
     With ``max_instances`` > 1 the search is repeated: the photo's pixels covered by the instances found so far
     (their rendered masks, grown by 4 px) are filled in from their surroundings, the filled photo is searched again
