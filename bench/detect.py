@@ -52,14 +52,16 @@ def main(argv=None) -> int:
     ap.add_argument("--distance", default="340,1500", help="distance range searched, mm (LM-O: 346-1500)")
     ap.add_argument("--top", type=int, default=5)
     ap.add_argument("--preset", default="default")
+    ap.add_argument("--set", action="append", default=[], metavar="SECTION.KEY=VALUE",
+                    help="config override on top of --preset (e.g. detect.accept=[...])")
     ap.add_argument("--out", type=Path, default=L.REPO / "out/bench/detect.json")
     ap.add_argument("--rerank", type=int, default=0, metavar="N",
                     help="also align each of the best N proposals from its template's pose "
                          "(PoseEstimator.estimate_from_prior) and rank them by the aligned fit")
-    ap.add_argument("--nms", type=float, default=0.3, help="non-maximum suppression IoU of the proposals")
-    ap.add_argument("--grow", type=float, default=1.3,
+    ap.add_argument("--nms", type=float, help="non-maximum suppression IoU of the proposals (default: config detect)")
+    ap.add_argument("--grow", type=float,
                     help="a suppressed box survives when its area is more than this times the better box's (0: never)")
-    ap.add_argument("--stop-confidence", type=float, default=0.9,
+    ap.add_argument("--stop-confidence", type=float,
                     help="--verify: estimate no more proposals once a pose is kept at this confidence (0: never stop)")
     ap.add_argument("--gt-box", action="store_true",
                     help="also estimate each target from its GT visible box (the same code's GT-box ADD(-S))")
@@ -67,11 +69,16 @@ def main(argv=None) -> int:
                     help="leave out the targets --max-targets N would pick (the set a parameter was chosen on)")
     ap.add_argument("--verify", action="store_true",
                     help="run find_objects (proposals, each estimated, the supported pose kept) and score its pose")
-    ap.add_argument("--threshold", type=float, default=70.0, help="LINE-2D similarity threshold (0-100)")
+    ap.add_argument("--threshold", type=float, help="LINE-2D similarity threshold (0-100; default: config detect)")
     args = ap.parse_args(argv)
     ds = L.BopDataset(args.dataset)
     objects = L.ObjectCache(ds)
-    cfg = PixieConfig.from_preset(args.preset)
+    cfg = PixieConfig.from_preset(args.preset).apply_overrides(args.set)
+    for key, value in (("nms_iou", args.nms), ("grow_ratio", args.grow), ("stop_confidence", args.stop_confidence),
+                       ("threshold", args.threshold)):
+        if value is not None:
+            setattr(cfg.detect, key, value)
+    dc = cfg.detect
     dist = tuple(float(v) for v in args.distance.split(","))
     targets = L.select_targets(ds, args.max_targets)
     if args.exclude:  # leave out the targets a parameter was chosen on
@@ -81,7 +88,6 @@ def main(argv=None) -> int:
     ests: dict[int, PoseEstimator] = {}
     rows, per = [], {}
     dets: dict[int, TemplateDetector] = {}  # every object's, kept: targets come image by image
-    grow = args.grow if args.grow > 0 else None
     det_kw = dict(distance_mm=dist, cache_dir=L.REPO / "out/bench/line2d")
 
     def estimator(oid: int) -> PoseEstimator:
@@ -109,20 +115,29 @@ def main(argv=None) -> int:
         verified = {}
         t0 = time.perf_counter()
         if args.verify:
-            found = find_objects(estimator(t.obj_id), img, K, top_k=args.top, nms_iou=args.nms, grow_ratio=grow,
-                                 threshold=args.threshold, stop_confidence=args.stop_confidence or None, **det_kw)
+            found = find_objects(estimator(t.obj_id), img, K, top_k=args.top, **det_kw)  # the rest: config detect
             props, dt = found.proposals, found.timings["propose"]
             best = found.poses[0] if found.poses else None
             T = None if best is None else best.T_cam_from_obj
             e = L.pose_errors(objects.eval_data(t.obj_id), T, g.T_cam_from_obj)
             iou_pose = 0.0 if T is None else box_iou(projected_box(T, K, estimator(t.obj_id).box_points),
                                                       xyxy(g.box_obj))
-            verified = {"found": found.found, "found_box": bool(iou_pose >= 0.5), "found_add": e["add_ok"],
+            per_prop = []  # every proposal's estimate: its named scores and whether it is right
+            for pr, res, terms in zip(found.proposals, found.estimates, found.terms):
+                rec = {"iou_gt": box_iou(pr.box_xyxy, xyxy(g.box_obj)), **terms}
+                if res is not None and res.T_cam_from_obj is not None:
+                    ep = L.pose_errors(objects.eval_data(t.obj_id), res.T_cam_from_obj, g.T_cam_from_obj)
+                    rec.update(add_ok=bool(ep["add_ok"]), pose_iou_gt=box_iou(
+                        projected_box(res.T_cam_from_obj, K, estimator(t.obj_id).box_points), xyxy(g.box_obj)))
+                per_prop.append(rec)
+            verified = {"found": found.found, "estimates": per_prop, "found_box": bool(iou_pose >= 0.5), "found_add": e["add_ok"],
                         "iou_pose": iou_pose, "confidence": None if best is None else best.confidence,
                         "seconds_find": found.timings["total"], "verdicts": found.verdicts}
         else:
-            props = dets[t.obj_id].propose(img, top_k=max(args.top, args.rerank), nms_iou=args.nms,
-                                           grow_ratio=grow, threshold=args.threshold)
+            props = dets[t.obj_id].propose(img, top_k=max(args.top, args.rerank), nms_iou=dc.nms_iou,
+                                           grow_ratio=dc.grow_ratio or None, threshold=dc.threshold,
+                                           vote_pool=dc.vote_pool, vote_weight=dc.vote_weight,
+                                           vote_inside=dc.vote_inside)
             dt = time.perf_counter() - t0
         box_obj = xyxy(g.box_obj)
         amodal = [box_iou(p.box_xyxy, box_obj) for p in props]  # every proposal's, the best --top ones reported below
@@ -142,12 +157,15 @@ def main(argv=None) -> int:
                 cands.append({"score": p.score, "iou": iou, "iou_aligned": box_iou(pb, box_obj),
                               "box_aligned": pb.tolist(), **{k: float(v) for k, v in terms.items()}})
             dt_rerank = time.perf_counter() - t1
+        ranked = {"ious": [round(float(v), 3) for v in amodal], "scores": [round(p.score, 2) for p in props],
+                  "votes": [p.votes for p in props],
+                  "boxes": [[round(float(v), 1) for v in p.box_xyxy] for p in props]}  # every proposal, best first
         props, amodal = props[: args.top], amodal[: args.top]
         visib = [box_iou(p.box_xyxy, xyxy(g.box_visib)) for p in props]
         r = {"target": [t.scene_id, t.im_id, t.obj_id], "visib_fract": g.visib_fract, "seconds": dt,
              "top1": bool(amodal[:1] and amodal[0] >= 0.5), "topk": bool(max(amodal, default=0) >= 0.5),
              "top1_visib": bool(visib[:1] and visib[0] >= 0.5), "topk_visib": bool(max(visib, default=0) >= 0.5),
-             **verified}
+             **verified, "proposals": ranked}
         if args.rerank:
             r["candidates"] = cands
             r["seconds_rerank"] = dt_rerank

@@ -79,3 +79,18 @@ def test_confidence_terms_and_coefficients_must_agree():
     with pytest.raises(ConfigError, match="unknown 'depth'"):
         PixieConfig().apply_overrides(["align.confidence_terms=[fit,depth]"])
     assert PixieConfig().apply_overrides(["align.confidence=[]"]).align.confidence == []  # the uncalibrated ratio
+
+
+def test_detect_acceptance_terms_and_coefficients_must_agree():
+    """detect.accept holds the intercept and one coefficient per detect.accept_terms name, as align.confidence does;
+    [] is the rule on the estimate's own confidence."""
+    cfg = PixieConfig.from_preset("default")
+    assert not cfg.detect.accept or len(cfg.detect.accept) == 1 + len(cfg.detect.accept_terms)
+    with pytest.raises(ConfigError, match="detect.accept has 2 coefficients"):
+        PixieConfig().apply_overrides(["detect.accept_terms=[fit,full_fit]", "detect.accept=[1,2]"])
+    with pytest.raises(ConfigError, match="unknown 'depth'"):
+        PixieConfig().apply_overrides(["detect.accept_terms=[fit,depth]"])
+    with pytest.raises(ConfigError, match=r"detect\.proposals"):
+        PixieConfig().apply_overrides(["detect.proposals=0"])
+    ok = PixieConfig().apply_overrides(["detect.accept_terms=[fit,full_fit]", "detect.accept=[-3,2,4]"])
+    assert ok.detect.accept == [-3.0, 2.0, 4.0] and PixieConfig().apply_overrides(["detect.accept=[]"]).detect.accept == []

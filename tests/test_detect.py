@@ -200,3 +200,50 @@ def test_a_part_of_the_object_does_not_hide_the_whole():
     near = np.array([0.0, 0.0, 100.0, 120.0])  # IoU 0.83, area ratio 1.2: the same place at about the same scale
     assert _suppresses(whole, near, 0.3, 1.3) and not _suppresses(whole, near, 0.3, 1.1)
     assert not _suppresses(whole, np.array([200.0, 0.0, 300.0, 100.0]), 0.3, 1.3)  # apart
+
+
+def test_a_pose_is_judged_inside_its_own_box_not_the_proposal(query_est, proc_mesh, scene_parts):
+    """proposal_terms: the pose's edge fit inside its *own* projected box (full_fit) is high at the true pose even when
+    the proposal holds only a part of it, and falls when the pose is moved off the object; box_iou is hand-checkable."""
+    from pixie.cues.detect import Proposal
+    from pixie.pipeline.find import proposal_terms
+    from pixie.pose.results import PoseResult
+
+    img, T = scene(proc_mesh, scene_parts, 1)
+    gt = projected_box(T, K, query_est.box_points)
+    half = np.array([gt[0], gt[1], 0.5 * (gt[0] + gt[2]), gt[3]])  # the left half of the object's box
+    p = Proposal(box_xyxy=half, score=80.0, view=0, angle=0.0, scale=1.0, centre=half[:2])
+    x = proposal_terms(query_est, img, K, p, PoseResult(T, 1.0, 0, False, "ok", confidence=0.7))
+    assert x["line2d"] == pytest.approx(0.8) and x["confidence"] == pytest.approx(0.7) and x["failed"] == 0.0
+    assert x["box_iou"] == pytest.approx(0.5, abs=1e-9)  # half the box inside the whole
+    assert x["full_visible"] > 0.95 and x["full_fit"] > 0.6, x
+    off = T.copy()
+    off[0, 3] += 0.25 * proc_mesh.diameter  # a quarter of the diameter aside
+    y = proposal_terms(query_est, img, K, p, PoseResult(off, 1.0, 0, False, "ok", confidence=0.7))
+    assert y["full_fit"] < 0.5 * x["full_fit"], (x["full_fit"], y["full_fit"])
+    failed = proposal_terms(query_est, img, K, p, PoseResult(None, 0.0, 0, True, "no pose"))
+    assert failed["failed"] == 1.0 and "full_fit" not in failed
+
+
+def test_acceptance_is_the_configured_logistic_of_the_named_scores():
+    from pixie.config import PixieConfig
+    from pixie.pipeline.find import acceptance
+
+    dc = PixieConfig().apply_overrides(["detect.accept_terms=[fit,full_fit]", "detect.accept=[-3,2,4]"]).detect
+    x = {"failed": 0.0, "confidence": 0.9, "fit": 0.5, "full_fit": 0.5}
+    assert acceptance(dc, x) == pytest.approx(1 / (1 + np.exp(-(-3 + 2 * 0.5 + 4 * 0.5))))  # z = 0: 0.5
+    assert acceptance(dc, {**x, "failed": 1.0}) == 0.0
+    assert acceptance(PixieConfig().apply_overrides(["detect.accept=[]"]).detect, x) == 0.9  # the confidence rule
+
+
+def test_parts_inside_a_box_vote_for_it():
+    """votes_inside (hand-computed boxes): a part's box counts for the box it lies in, not the other way round, and a
+    box sticking out by more than a fifth of its area does not count."""
+    from pixie.cues.detect import votes_inside
+
+    whole = np.array([0.0, 0.0, 100.0, 100.0])
+    part = np.array([10.0, 10.0, 40.0, 40.0])  # wholly inside
+    edge = np.array([80.0, 0.0, 110.0, 30.0])  # 2/3 of its area inside: below 0.8
+    apart = np.array([200.0, 0.0, 230.0, 30.0])
+    assert votes_inside([whole, part, edge, apart]).tolist() == [1, 0, 0, 0]
+    assert votes_inside([whole, part, edge, apart], inside=0.6).tolist() == [2, 0, 0, 0]

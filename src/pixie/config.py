@@ -442,6 +442,54 @@ RANGES.update({"parts.fit_px": (0, 100, False), "parts.shift_frac": (0, 1, True)
 
 
 @dataclass
+class DetectConfig(_Section):
+    """Finding the object without a box (``pixie estimate --detect``, :func:`pixie.pipeline.find.find_objects`):
+    LINE-2D proposals (pixie.cues.detect), each estimated, the poses the photo supports kept.
+
+    An estimate is accepted when ``logistic(accept[0] + accept[1] * term1 + ...)`` over ``accept_terms`` (its named
+    scores, :func:`pixie.pipeline.find.proposal_terms`) reaches ``min_accept``; [] = the estimate's own calibrated
+    confidence reaches ``min_accept`` and its pose's box overlaps the proposal by ``min_box_iou``.
+    """
+
+    proposals: int = 5  # proposals estimated per round (best first)
+    threshold: float = 70.0  # LINE-2D similarity (0-100) a match needs
+    nms_iou: float = 0.3  # a box overlapping a better one by this IoU is suppressed ...
+    grow_ratio: float = 1.3  # ... unless its area is more than this x the better box's (0: plain suppression)
+    # the best vote_pool distinct boxes ordered by LINE-2D similarity + vote_weight x the other pool boxes inside them
+    # (vote_inside of their area: parts of the object that fired on their own); 0 = LINE-2D's order. Rule (session 18,
+    # the defects benchmark's first 48 targets): most right boxes among the best 5, then among the best 1, then the
+    # smallest weight, on the grid weight 0/1/2/3/5/8 x pool 10/20
+    vote_pool: int = 10
+    vote_weight: float = 3.0
+    vote_inside: float = 0.8
+    stop_confidence: float = 0.9  # no more proposals are estimated once a pose is accepted at this (1: never stop)
+    min_accept: float = 0.5
+    min_box_iou: float = 0.5  # (the rule without accept coefficients)
+    accept: list[float] = field(default_factory=list)
+    accept_terms: list[str] = field(default_factory=lambda: ["confidence"])
+
+    def check_accept(self) -> None:
+        """Raise :class:`ConfigError` unless ``accept`` is empty or holds the intercept and a coefficient per term."""
+        if self.accept and len(self.accept) != 1 + len(self.accept_terms):
+            raise ConfigError(f"detect.accept has {len(self.accept)} coefficients but detect.accept_terms names "
+                              f"{len(self.accept_terms)} terms: give the intercept and one coefficient per term "
+                              f"({1 + len(self.accept_terms)} numbers), or [] for the confidence rule")
+
+
+_SECTION_NAMES[DetectConfig] = "detect"
+# what an estimated proposal's acceptance may be computed from (pixie.pipeline.find.proposal_terms)
+ACCEPT_TERMS = ("confidence", "line2d", "box_iou", "fit", "fit_silhouette", "fit_visible", "fit_dist", "edge",
+                "region", "fused", "margin", "size", "full_fit", "full_silhouette", "full_visible")
+CHOICES["detect.accept_terms"] = ACCEPT_TERMS
+SIGNED_LISTS.add("detect.accept")
+LIST_LENGTHS["detect.accept"] = tuple(range(0, len(ACCEPT_TERMS) + 2))
+RANGES.update({"detect.proposals": (1, 1000, True), "detect.threshold": (0, 100, True), "detect.nms_iou": (0, 1, True),
+               "detect.grow_ratio": (0, None, True),
+               "detect.vote_pool": (1, 1000, True), "detect.vote_weight": (0, None, True), "detect.vote_inside": (0, 1, False), "detect.stop_confidence": (0, 1, True),
+               "detect.min_accept": (0, 1, True), "detect.min_box_iou": (0, 1, True)})
+
+
+@dataclass
 class PixieConfig:
     refs: RefsConfig = field(default_factory=RefsConfig)
     query: QueryConfig = field(default_factory=QueryConfig)
@@ -451,6 +499,7 @@ class PixieConfig:
     shape: ShapeConfig = field(default_factory=ShapeConfig)
     align: AlignConfig = field(default_factory=AlignConfig)
     parts: PartsConfig = field(default_factory=PartsConfig)
+    detect: DetectConfig = field(default_factory=DetectConfig)
     preset: str | None = field(default=None, compare=False)  # name of the preset it started from (None: dataclass defaults)
 
     def to_dict(self) -> dict[str, Any]:
@@ -482,6 +531,7 @@ class PixieConfig:
         """Checks between keys (each key alone is checked when set): the calibrated confidence has one coefficient
         per term plus the intercept."""
         self.align.check_confidence()
+        self.detect.check_accept()
         return self
 
     @classmethod

@@ -320,9 +320,10 @@ def _estimate_detect(args: argparse.Namespace, est: PoseEstimator, image, K, out
         print(f"proposal box x,y,w,h = {','.join(f'{x:.0f}' for x in p.box_xywh)} (LINE-2D {p.score:.0f}): {v}")
     if not fr.found:
         print("not found: no proposal gave a pose the photo supports (exit 0; give --bbox or --mask if it is there)")
-    for i, r in enumerate(fr.poses):
+    for i, (r, a) in enumerate(zip(fr.poses, fr.accepts)):
         np.set_printoptions(precision=4, suppress=True)
-        print(f"instance {i + 1}: box {np.round(r.box_xyxy, 0).tolist()} (x0,y0,x1,y1), confidence {r.confidence:.2f}"
+        print(f"instance {i + 1}: box {np.round(r.box_xyxy, 0).tolist()} (x0,y0,x1,y1), confidence {r.confidence:.2f}, "
+              f"accepted at {a:.2f} (config detect.accept)"
               f"\nT_cam_from_obj (mm) =\n{r.T_cam_from_obj}")
     if out_json:
         best = fr.poses[0].to_dict() if fr.found else {"T_cam_from_obj": None, "failed": True,
@@ -566,7 +567,7 @@ def _add_estimate_args(e: argparse.ArgumentParser) -> None:
                    "proposals from its contour templates, each verified by its pose; 'not found' is a result)")
     e.add_argument("--distance", help="--detect: the object's distance range MIN,MAX in mm (default: any that makes "
                    "it 60-360 px across); a narrower range is faster and finds it more reliably")
-    e.add_argument("--proposals", type=int, default=3, help="--detect: proposals estimated (default 3)")
+    e.add_argument("--proposals", type=int, help="--detect: proposals estimated (default: config detect.proposals, 5)")
     e.add_argument("--instances", type=int, default=1, help="--detect: at most this many instances (default 1)")
     e.add_argument("--masks", help="--batch FOLDER: folder of masks named like the images")
     e.add_argument("-o", "--output", help="result JSON (one photo) or output folder (--batch)")
