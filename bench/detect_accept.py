@@ -30,10 +30,14 @@ from pathlib import Path
 
 import numpy as np
 
-from lmo_select import auc, logistic_fit  # noqa: E402  (bench/lmo_select.py; puts src/ on the path)
+from lmo_select import auc, cv_auc, fit_raw, predict  # noqa: E402  (bench/lmo_select.py; puts src/ on the path)
 
-TERMS = ("confidence", "line2d", "box_iou", "fit", "fit_silhouette", "fit_visible", "fit_dist", "edge", "region",
-         "fused", "margin", "size", "full_fit", "full_silhouette", "full_visible")
+from pixie.config import ACCEPT_TERMS as TERMS  # noqa: E402  (what config.detect.accept_terms may name)
+
+
+def finite(e: dict) -> dict:
+    """An estimate's record with non-finite terms (e.g. ``fit_dist`` of a pose with no visible point) set to 0."""
+    return {k: (0.0 if isinstance(v, float) and not np.isfinite(v) else v) for k, v in e.items()}
 
 
 def estimates(rows: list[dict]) -> tuple[list[dict], np.ndarray, np.ndarray]:
@@ -43,46 +47,16 @@ def estimates(rows: list[dict]) -> tuple[list[dict], np.ndarray, np.ndarray]:
         for e in r.get("estimates", []):
             if "add_ok" not in e or e.get("failed", 1.0):
                 continue
-            xs.append(e)
+            xs.append(finite(e))
             ys.append(bool(e["add_ok"]))
             gs.append(i)
     return xs, np.array(ys, bool), np.array(gs, int)
 
 
-def matrix(xs: list[dict], ks: list[str]) -> np.ndarray:
-    X = np.array([[float(x.get(k, 0.0)) for k in ks] for x in xs], np.float64).reshape(len(xs), len(ks))
-    return np.where(np.isfinite(X), X, 0.0)
-
-
-def cv_auc(xs: list[dict], y: np.ndarray, groups: np.ndarray, ks: list[str], folds: int = 5) -> float:
-    X = matrix(xs, ks)
-    X = (X - X.mean(0)) / (X.std(0) + 1e-9)
-    fold = groups % folds
-    pred = np.zeros(len(y))
-    for k in range(folds):
-        te = fold == k
-        w = logistic_fit(X[~te], y[~te].astype(float), l2=1.0)
-        pred[te] = w[0] + X[te] @ w[1:]
-    return auc(pred, y)
-
-
-def fit_raw(xs: list[dict], y: np.ndarray, ks: list[str]) -> list[float]:
-    X = matrix(xs, ks)
-    mu, sd = X.mean(0), X.std(0) + 1e-9
-    w = logistic_fit((X - mu) / sd, y.astype(float), l2=1.0)
-    b = w[1:] / sd
-    return [float(w[0] - (b * mu).sum())] + [float(v) for v in b]
-
-
-def predict(x: dict, ks: list[str], coef: list[float]) -> float:
-    z = coef[0] + float(matrix([x], ks)[0] @ np.asarray(coef[1:]))
-    return float(1.0 / (1.0 + np.exp(-np.clip(z, -500, 500))))
-
-
 def select_terms(xs, y, groups, min_gain: float = 0.005) -> tuple[list[str], list[tuple[str, float]]]:
     chosen, steps, best = [], [], 0.5
     while True:
-        scores = {k: cv_auc(xs, y, groups, chosen + [k]) for k in TERMS if k not in chosen}
+        scores = {k: cv_auc(xs, y, chosen + [k], groups=groups) for k in TERMS if k not in chosen}
         if not scores:
             break
         k = max(scores, key=scores.get)
@@ -105,7 +79,7 @@ def decide(r: dict, accept, stop: float | None) -> tuple[dict | None, int]:
         made += 1
         if e.get("failed", 1.0) or "add_ok" not in e:
             continue
-        p = accept(e)
+        p = accept(finite(e))
         if p is None:
             continue
         if kept is None or p > kept["_p"]:
@@ -145,7 +119,7 @@ def main(argv=None) -> int:
     print("forward selection (CV AUC):", ", ".join(f"+{k} {a:.3f}" for k, a in steps))
     print("model:", dict(zip(["intercept"] + terms, np.round(coef, 3).tolist())))
     xr, yr, _ = estimates(rep_rows)
-    a_new = auc(np.array([predict(x, terms, coef) for x in xr]), yr)
+    a_new = auc(predict(xr, terms, coef), yr)
     a_old = auc(np.array([x["confidence"] for x in xr]), yr)
     print(f"report set: {len(rep_rows)} targets, {len(xr)} estimates; AUC right vs wrong: calibrated acceptance "
           f"{a_new:.3f}, the estimate's confidence {a_old:.3f}")
@@ -155,7 +129,7 @@ def main(argv=None) -> int:
         return e["confidence"] if e["confidence"] >= 0.5 and e.get("box_iou", 0.0) >= 0.5 else None
 
     def calibrated(e):
-        p = predict(e, terms, coef)
+        p = float(predict([e], terms, coef)[0])
         return p if p >= 0.5 else None
 
     table = {}

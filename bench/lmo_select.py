@@ -96,11 +96,12 @@ def _matrix(xs: list[dict], ks: list[str]) -> np.ndarray:
     return np.array([[x.get(k, 0.0) for k in ks] for x in xs], np.float64).reshape(len(xs), len(ks))
 
 
-def cv_auc(xs: list[dict], y: np.ndarray, ks: list[str], folds: int = 5) -> float:
-    """Cross-validated AUC of a logistic model on terms ``ks`` (standardised; folds by position)."""
+def cv_auc(xs: list[dict], y: np.ndarray, ks: list[str], folds: int = 5, groups: np.ndarray | None = None) -> float:
+    """Cross-validated AUC of a logistic model on terms ``ks`` (standardised; folds by position, or by ``groups``:
+    records of one group stay in one fold)."""
     X = _matrix(xs, ks)
     X = (X - X.mean(0)) / (X.std(0) + 1e-9)
-    fold = np.arange(len(y)) % folds
+    fold = (np.arange(len(y)) if groups is None else np.asarray(groups)) % folds
     pred = np.zeros(len(y))
     for k in range(folds):
         te = fold == k

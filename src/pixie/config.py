@@ -462,7 +462,7 @@ class DetectConfig(_Section):
     vote_pool: int = 10
     vote_weight: float = 3.0
     vote_inside: float = 0.8
-    stop_confidence: float = 0.9  # no more proposals are estimated once a pose is accepted at this (1: never stop)
+    stop_confidence: float = 0.9  # no more proposals are estimated once a pose is accepted at this (0: never stop)
     min_accept: float = 0.5
     min_box_iou: float = 0.5  # (the rule without accept coefficients)
     accept: list[float] = field(default_factory=list)
@@ -485,7 +485,8 @@ SIGNED_LISTS.add("detect.accept")
 LIST_LENGTHS["detect.accept"] = tuple(range(0, len(ACCEPT_TERMS) + 2))
 RANGES.update({"detect.proposals": (1, 1000, True), "detect.threshold": (0, 100, True), "detect.nms_iou": (0, 1, True),
                "detect.grow_ratio": (0, None, True),
-               "detect.vote_pool": (1, 1000, True), "detect.vote_weight": (0, None, True), "detect.vote_inside": (0, 1, False), "detect.stop_confidence": (0, 1, True),
+               "detect.vote_pool": (1, 1000, True), "detect.vote_weight": (0, None, True),
+               "detect.vote_inside": (0, 1, False), "detect.stop_confidence": (0, 1, True),
                "detect.min_accept": (0, 1, True), "detect.min_box_iou": (0, 1, True)})
 
 
@@ -528,8 +529,8 @@ class PixieConfig:
         return self.check()
 
     def check(self) -> "PixieConfig":
-        """Checks between keys (each key alone is checked when set): the calibrated confidence has one coefficient
-        per term plus the intercept."""
+        """Checks between keys (each key alone is checked when set): the calibrated confidence and the detection's
+        acceptance have one coefficient per term plus the intercept."""
         self.align.check_confidence()
         self.detect.check_accept()
         return self

@@ -103,6 +103,14 @@ def votes_inside(boxes: list[np.ndarray], inside: float = 0.8) -> np.ndarray:
                      for i, a in enumerate(boxes)], int)
 
 
+def voted_order(scores: np.ndarray, boxes: list[np.ndarray], weight: float,
+                inside: float = 0.8) -> tuple[np.ndarray, np.ndarray]:
+    """The votes of each box (:func:`votes_inside`; none when ``weight`` is 0) and the order of
+    ``scores + weight * votes``, best first (stable: ties keep LINE-2D's order)."""
+    votes = votes_inside(boxes, inside) if weight > 0 else np.zeros(len(boxes), int)
+    return votes, np.argsort(-(np.asarray(scores, np.float64) + weight * votes), kind="stable")
+
+
 def _suppresses(better: np.ndarray, box: np.ndarray, nms_iou: float, grow_ratio: float | None) -> bool:
     """Whether a kept box ``better`` suppresses ``box`` (see :meth:`TemplateDetector.propose`)."""
     if box_iou(better, box) < nms_iou:
@@ -295,8 +303,8 @@ class TemplateDetector:
                                 scale=pl.scale, centre=np.array([m.x, m.y], np.float64) + pl.origin))
             if len(out) >= max(top_k, vote_pool if vote_weight > 0 else 0):
                 break
-        votes = votes_inside([p.box_xyxy for p in out], vote_inside) if vote_weight > 0 else np.zeros(len(out), int)
+        votes, order = voted_order(np.array([p.score for p in out]), [p.box_xyxy for p in out], vote_weight,
+                                   vote_inside)
         for p, v in zip(out, votes):
             p.votes, p.rank_score = int(v), p.score + vote_weight * float(v)
-        order = np.argsort(-np.array([p.rank_score for p in out]), kind="stable")
         return [out[i] for i in order[:top_k]]

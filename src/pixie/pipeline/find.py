@@ -28,7 +28,7 @@ from pixie.cues.edge_align import edge_fit, photo_edges_kwargs
 from pixie.cues.edge_photo import photo_edges
 from pixie.errors import PixieError
 from pixie.pose.results import PoseResult
-from pixie.pose.solve import box_iou, projected_box
+from pixie.pose.solve import box_iou, projected_box, projected_box_in_image
 from pixie.references.templates import ContourTemplates
 
 __all__ = ["FindResult", "find_objects", "detector_for"]
@@ -164,8 +164,8 @@ def proposal_terms(est, image: np.ndarray, K: np.ndarray, p: Proposal, res: Pose
     """The named scores of proposal ``p`` and its estimate ``res``: ``line2d`` (LINE-2D similarity / 100),
     ``confidence`` (the estimate's), ``box_iou`` (its pose's projected box against the proposal), the chosen
     hypothesis's terms (``fit``, ``fit_visible`` ...: the alignment's, inside the proposal box) and ``full_fit`` /
-    ``full_silhouette`` / ``full_visible``: the pose's edge fit inside its *own* projected box (grown as the
-    alignment grows a box). A proposal on a part of the object can hold a pose of the whole whose contour leaves the
+    ``full_silhouette`` / ``full_visible``: the pose's edge fit inside its *own* projected box (clipped to the image, grown
+    as the alignment grows a box). A proposal on a part of the object can hold a pose of the whole whose contour leaves the
     proposal box; inside the box that contour is taken for occluded, inside the pose's own box it is judged."""
     x: dict[str, float] = {"line2d": p.score / 100.0, "confidence": float(res.confidence),
                            "failed": float(bool(res.failed or res.T_cam_from_obj is None))}
@@ -176,9 +176,8 @@ def proposal_terms(est, image: np.ndarray, K: np.ndarray, p: Proposal, res: Pose
     x["box_iou"] = box_iou(pb, p.box_xyxy)
     if res.hypotheses:
         x.update({k: float(v) for k, v in res.hypotheses[0].terms.items() if v is not None})
-    h, w = image.shape[:2]
-    own = np.array([max(pb[0], 0.0), max(pb[1], 0.0), min(pb[2], w), min(pb[3], h)])
-    if own[2] - own[0] < 2 or own[3] - own[1] < 2:
+    own = projected_box_in_image(T, K, est.box_points, image.shape)
+    if own is None:
         x.update(full_fit=0.0, full_silhouette=0.0, full_visible=0.0)
         return x
     ac = est.cfg.align
