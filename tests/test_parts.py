@@ -8,7 +8,7 @@ import pytest
 
 from pixie.config import PART_KINDS, PixieConfig, RefsConfig
 from pixie.cues.edge_align import align, align_kwargs, photo_edges
-from pixie.cues.parts import (complement_renderers, judge_parts, part_moves, part_renderers, part_support,
+from pixie.cues.parts import (coarse_pixels, complement_renderers, judge_parts, part_moves, part_renderers, part_support,
                               report_kwargs, robust_part_fit)
 from pixie.errors import ConfigError, MeshError
 from pixie.geometry.camera import look_at, make_K, rotation_angle_deg
@@ -379,6 +379,23 @@ def test_verdicts_are_relative_to_the_assembly_so_a_textured_photo_flags_nothing
     # one part without edges and with mixed colours among uniform ones: that one is missing
     one = judge_parts(parts([0.95, 0.97, 0.3, 0.96], [0.8, 0.85, 0.1, 0.82]), **JUDGE)
     assert [p.verdict for p in one] == ["present", "present", "missing", "present"]
+
+
+def test_coarse_pixels_drop_pieces_smaller_than_the_detail_size():
+    # a 40 px line, a 3 x 3 ring (a stud's rim) and one pixel, 8-connected
+    line = [(10.0 + i, 20.0) for i in range(40)]
+    ring = [(60.0 + dx, 60.0 + dy) for dx in (0, 1, 2) for dy in (0, 1, 2) if (dx, dy) != (1, 1)]
+    xy = np.array(line + ring + [(5.0, 70.0)])
+    sel = np.ones(len(xy), bool)
+    sel[0] = False  # not considered: stays out
+    kept = coarse_pixels(xy, sel, (80, 80), detail_px=6)
+    assert kept[1:40].all() and not kept[0]  # the line (39 px across without its first) stays
+    assert not kept[40:].any()  # the ring (3 px across) and the speck go
+    assert coarse_pixels(xy, sel, (80, 80), detail_px=3)[40:48].all()  # 3 px across is kept at 3
+    assert np.array_equal(coarse_pixels(xy, sel, (80, 80), detail_px=0), sel)  # 0: off
+    # diagonal neighbours are one piece (8-connectivity): a 45-degree edge of 10 px is 10 px across
+    diag = np.array([(i, i) for i in range(10)], float)
+    assert coarse_pixels(diag, np.ones(10, bool), (20, 20), detail_px=10).all()
 
 
 def test_part_support_record_round_trip():

@@ -401,6 +401,9 @@ class PartsConfig(_Section):
     fit_px: float = 1.5  # a part's contour pixel is supported by a same-orientation photo edge this close (crop px)
     kinds: list[str] = field(default_factory=lambda: ["silhouette", "step", "seam"])  # contour pixels that count
     step_frac: float = 0.0  # a depth step counts when deeper than this share of the diameter (and 1 % of the depth)
+    # the exclusive / revealed contours leave out pieces smaller than this, crop px (a stud a missing brick uncovers:
+    # detail the photo does not resolve); 0 keeps them
+    detail_px: float = 0.0
     shift_frac: float = 0.12  # displaced-part search: slide the part's contour up to this share of the box's side
     min_points: int = 12  # fewer visible contour pixels: 'not visible'
     min_visible: float = 0.2  # less of the part in view (hidden by other parts, outside the box / mask): 'not visible'
@@ -436,6 +439,7 @@ RANGES.update({"parts.fit_px": (0, 100, False), "parts.shift_frac": (0, 1, True)
                "parts.min_visible": (0, 1, True), "parts.flag_below": (-10, 10, True), "parts.shift_gain": (0, None, True),
                "parts.found_shifted": (0, None, True), "parts.colour_weight": (0, 100, True), "parts.supported_above": (0, 100, True),
                "parts.colour_ab": (0, 300, False), "parts.step_frac": (0, 1, True),
+               "parts.detail_px": (0, 1000, True),
                "parts.revealed_weight": (0, 100, True), "parts.shift_weight": (0, 100, True),
                "parts.move_below": (0, 100, True), "parts.move_gain": (-1, 1, True), "parts.move_changed": (0, 10, True),
                "parts.move_px": (0, 1000, True)})

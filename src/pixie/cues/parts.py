@@ -112,7 +112,7 @@ class PartSupport:
 def report_kwargs(pc: PartsConfig) -> tuple[dict, dict]:
     """The keywords of :func:`part_support` and of :func:`judge_parts` that ``config.parts`` sets."""
     support = dict(fit_px=pc.fit_px, shift_frac=pc.shift_frac, min_points=pc.min_points, colour_ab=pc.colour_ab,
-                   step_frac=pc.step_frac, kinds=tuple(PART_KINDS.index(k) for k in pc.kinds),
+                   step_frac=pc.step_frac, detail_px=pc.detail_px, kinds=tuple(PART_KINDS.index(k) for k in pc.kinds),
                    moves=pc.moves, min_visible=pc.min_visible, move_below=pc.move_below,
                    move_changed=pc.move_changed, move_px=pc.move_px, move_collide=pc.move_collide)
     judge = dict(flag_below=pc.flag_below, colour_weight=pc.colour_weight, revealed_weight=pc.revealed_weight,
@@ -171,13 +171,42 @@ def _slide(pe: PhotoEdges, xy: np.ndarray, ori: np.ndarray, sel: np.ndarray, shi
     return float(sup[j]), j
 
 
+def coarse_pixels(xy: np.ndarray, sel: np.ndarray, shape: tuple[int, int], detail_px: float) -> np.ndarray:
+    """``sel`` without the contour pixels of small pieces: of the pixels ``xy[sel]``, the 8-connected components
+    whose bounding box is under ``detail_px`` on its longer side are dropped (a LEGO stud's rim, a screw head: detail
+    the photo does not resolve at this scale). ``detail_px`` <= 0 keeps every pixel.
+
+    Parameters
+    ----------
+    xy : (N, 2) pixel centres (x, y) of a contour; sel : (N,) bool, the pixels considered
+    shape : (H, W) of the image the pixels lie in; detail_px : the smallest piece kept, px
+
+    Returns
+    -------
+    (N,) bool: ``sel`` and in a component at least ``detail_px`` across
+    """
+    sel = np.asarray(sel, bool)
+    if detail_px <= 0 or not sel.any():
+        return sel
+    H, W = shape
+    x = np.clip(np.rint(xy[:, 0]).astype(int), 0, W - 1)
+    y = np.clip(np.rint(xy[:, 1]).astype(int), 0, H - 1)
+    m = np.zeros((H, W), np.uint8)
+    m[y[sel], x[sel]] = 1
+    n, lab, stats, _ = cv2.connectedComponentsWithStats(m, connectivity=8)
+    big = np.maximum(stats[:, cv2.CC_STAT_WIDTH], stats[:, cv2.CC_STAT_HEIGHT]) >= detail_px
+    big[0] = False  # the background label
+    return sel & big[lab[y, x]]
+
+
 def part_support(renderer: Renderer, face_parts: np.ndarray, part_names, pe: PhotoEdges, T: np.ndarray, *,
                  fit_px: float = 1.5, max_bin_gap: int = 1, shift_frac: float = 0.12, shift_step: float = 2.0,
                  renderers: list[Renderer] | None = None, min_points: int = 12, kinds=(0, 1, 2),
                  max_points: int = 240, step_frac: float = 0.0, colour_ab: float = 12.0,
                  complements: list[tuple[Renderer, np.ndarray]] | None = None,
                  moves: bool = False, min_visible: float = 0.2, move_below: float = 0.9, move_changed: float = 0.3,
-                 move_px: float = 4.0, move_collide: bool = True, solids: PartSolids | None = None) -> list[PartSupport]:
+                 move_px: float = 4.0, move_collide: bool = True, solids: PartSolids | None = None,
+                 detail_px: float = 0.0) -> list[PartSupport]:
     """Every part's support at pose ``T`` (verdicts not yet set: :func:`judge_parts`).
 
     Parameters
@@ -203,6 +232,8 @@ def part_support(renderer: Renderer, face_parts: np.ndarray, part_names, pe: Pho
         pixels and shifts some vertex of it by ``move_px`` crop px (:func:`pixie.cues.part_moves.move_evidence`)
     move_collide, solids : with ``move_collide``, moves that pass the part into another (:func:`collides` on the
         parts' ``solids``, :func:`pixie.geometry.collide.part_solids`, made here when None) are not tried
+    detail_px : the exclusive and revealed contours leave out pieces smaller than this (crop px,
+        :func:`coarse_pixels`): the studs a missing brick uncovers, which the photo does not resolve
     """
     face_parts = np.asarray(face_parts)
     n_parts = len(part_names)
@@ -247,13 +278,14 @@ def part_support(renderer: Renderer, face_parts: np.ndarray, part_names, pe: Pho
             wxy, wori, _, _, wkind = part_contours(rw, cparts, step_mm=step_mm)
             wk = np.isin(wkind, np.asarray(kinds))
             wxy, wori = wxy[wk], wori[wk]
-            mine = inside & ~explained(xy, ori, near_maps(wxy, wori, part_map.shape))
+            mine = coarse_pixels(xy, inside & ~explained(xy, ori, near_maps(wxy, wori, part_map.shape)),
+                                 part_map.shape, detail_px)
             n_excl = int(mine.sum())
             excl = float(hit[mine].mean()) if n_excl else 0.0
             excl_shifted = excl
             if n_excl >= min_points and len(shifts):
                 excl_shifted = max(excl, _slide(pe, xy, ori, mine, shifts, max_points, max_bin_gap, fit_px)[0])
-            new_px = ~explained(wxy, wori, near_all)
+            new_px = coarse_pixels(wxy, ~explained(wxy, wori, near_all), part_map.shape, detail_px)
             if new_px.any():
                 dw, win = edge_distances(pe, wxy[new_px], wori[new_px], max_bin_gap, fit_px)
                 n_rev = int(win.sum())
