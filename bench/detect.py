@@ -34,6 +34,7 @@ from pixie.app.runner import make_matcher  # noqa: E402
 from pixie.config import PixieConfig  # noqa: E402
 from pixie.cues.detect import TemplateDetector  # noqa: E402
 from pixie.errors import PixieError  # noqa: E402
+from pixie.geometry.render import Renderer  # noqa: E402
 from pixie.pipeline.estimator import PoseEstimator  # noqa: E402
 from pixie.pipeline.find import detector_for, find_objects  # noqa: E402
 from pixie.pose.solve import box_iou, projected_box  # noqa: E402
@@ -107,7 +108,7 @@ def main(argv=None) -> int:
                 matcher = matcher or make_matcher(cfg)
                 refs = objects.refs(cfg, t.obj_id, matcher)
                 dets[t.obj_id] = TemplateDetector(ContourTemplates.from_arrays(refs.templates), K,
-                                                  diameter=refs.mesh.diameter, **det_kw)
+                                                  diameter=refs.mesh.diameter, renderer=Renderer(refs.mesh), **det_kw)
             print(f"obj {t.obj_id}: {dets[t.obj_id].n_templates} templates in {time.perf_counter() - t0:.1f} s",
                   flush=True)
         g = L.gt_instance(ds, t)
@@ -137,7 +138,8 @@ def main(argv=None) -> int:
             props = dets[t.obj_id].propose(img, top_k=max(args.top, args.rerank), nms_iou=dc.nms_iou,
                                            grow_ratio=dc.grow_ratio or None, threshold=dc.threshold,
                                            vote_pool=dc.vote_pool, vote_weight=dc.vote_weight,
-                                           vote_inside=dc.vote_inside)
+                                           vote_inside=dc.vote_inside, region_pool=dc.region_pool,
+                                           region_weight=dc.region_weight, region_band=dc.region_band)
             dt = time.perf_counter() - t0
         box_obj = xyxy(g.box_obj)
         amodal = [box_iou(p.box_xyxy, box_obj) for p in props]  # every proposal's, the best --top ones reported below
@@ -159,6 +161,7 @@ def main(argv=None) -> int:
             dt_rerank = time.perf_counter() - t1
         ranked = {"ious": [round(float(v), 3) for v in amodal], "scores": [round(p.score, 2) for p in props],
                   "votes": [p.votes for p in props],
+                  "regions": [None if not np.isfinite(p.region) else round(float(p.region), 4) for p in props],
                   "boxes": [[round(float(v), 1) for v in p.box_xyxy] for p in props]}  # every proposal, best first
         props, amodal = props[: args.top], amodal[: args.top]
         visib = [box_iou(p.box_xyxy, xyxy(g.box_visib)) for p in props]

@@ -5,8 +5,13 @@ Usage::
     PYTHONPATH=src .venv/bin/python bench/lmo_align_study.py [--max-targets 48] [--preset default] \
         [--variant NAME:align.key=value,align.key=value ...] [--out out/bench/lmo_align_study.json]
 
-Stage 1 (cached in ``out/bench/lmo_align_study/<hash>.pkl``, keyed by the preset, the targets and the code tag): the
-pipeline up to and including the shape stage (``PoseEstimator.estimate`` with ``align.enabled=false``) per target,
+All 716 targets, stage 1 on both cores, then the rows with AR (the ablation table of bench/RESULTS.md, session 22)::
+
+    PYTHONPATH=src .venv/bin/python bench/lmo_align_study.py --max-targets 716 --shard 0/2 &   # and --shard 1/2
+    PYTHONPATH=src .venv/bin/python bench/lmo_align_study.py --max-targets 716 --ar --variant ...
+
+Stage 1 (cached in ``out/bench/lmo_align_study/<hash>/`` one pickle per target, keyed by the preset, the targets and
+the code tag; an older single ``<hash>.pkl`` is still read): the pipeline up to and including the shape stage (``PoseEstimator.estimate`` with ``align.enabled=false``) per target,
 keeping every hypothesis. Stage 2, per variant: :meth:`PoseEstimator.align_stage` on copies of those hypotheses;
 the chosen pose is scored (ADD(-S)<0.1d, rotation error) and every aligned candidate's correctness recorded. The
 row ``no alignment`` is the cached pipeline's own choice. Prints one table (hits, share, any aligned candidate
@@ -33,31 +38,47 @@ from pixie.config import PixieConfig  # noqa: E402
 from pixie.app.runner import make_matcher  # noqa: E402
 from pixie.pipeline.estimator import PoseEstimator, Query  # noqa: E402
 from pixie.pipeline.query import check_bbox  # noqa: E402
+from pixie.eval import evaluate  # noqa: E402
+from pixie.eval.datasets import PoseEstimate  # noqa: E402
 
 TAG = "s9-1"  # s9: hypotheses keep their PnP inliers (support_uv, support_xyz)
 
 
-def stage1(ds, objects, targets, cfg, cache: Path) -> list[dict]:
+def _stage1_record(ds, est, t) -> dict:
+    g = L.gt_instance(ds, t)
+    img = ds.load_rgb(t.scene_id, t.im_id)
+    K = ds.camera(t.scene_id, t.im_id).K
+    res = est.estimate(img, K, bbox=g.box_visib)
+    return {"target": (t.scene_id, t.im_id, t.obj_id), "t": t, "hyps": res.candidates, "box": g.box_visib,
+            "best_match": max([h.match_score for h in res.candidates], default=0.0),
+            "seconds": sum(v for k, v in (res.timings or {}).items() if k != "total")}
+
+
+def stage1(ds, objects, targets, cfg, cache: Path, shard: tuple[int, int] = (0, 1)) -> list[dict] | None:
+    """Stage-1 records of ``targets``: from ``cache`` (one pickle, the older layout) or from the per-target pickles in
+    the folder ``cache.with_suffix('')`` (computed for the shard's targets, ``targets[k::n]``, when missing). Returns
+    None while another shard's targets are still missing."""
     if cache.is_file():
         return pickle.loads(cache.read_bytes())
-    matcher = make_matcher(cfg)
-    out = []
+    folder = cache.with_suffix("")
+    folder.mkdir(parents=True, exist_ok=True)
+    path = lambda t: folder / f"{t.scene_id:06d}_{t.im_id:06d}_{t.obj_id:06d}.pkl"  # noqa: E731
+    k, n = shard
+    todo = [t for t in targets[k::n] if not path(t).is_file()]
+    matcher = make_matcher(cfg) if todo else None
     ests = {}
-    for i, t in enumerate(targets):
+    for i, t in enumerate(todo):
         if t.obj_id not in ests:
             ests[t.obj_id] = PoseEstimator(objects.refs(cfg, t.obj_id, matcher), cfg, matcher=matcher)
-        est = ests[t.obj_id]
-        g = L.gt_instance(ds, t)
-        img = ds.load_rgb(t.scene_id, t.im_id)
-        K = ds.camera(t.scene_id, t.im_id).K
-        res = est.estimate(img, K, bbox=g.box_visib)
-        out.append({"target": (t.scene_id, t.im_id, t.obj_id), "t": t, "hyps": res.candidates, "box": g.box_visib,
-                    "best_match": max([h.match_score for h in res.candidates], default=0.0)})
+        rec = _stage1_record(ds, ests[t.obj_id], t)
+        tmp = path(t).with_suffix(".tmp")
+        tmp.write_bytes(pickle.dumps(rec))
+        tmp.replace(path(t))
         if (i + 1) % 12 == 0:
-            print(f"  stage 1: {i + 1}/{len(targets)}", flush=True)
-    cache.parent.mkdir(parents=True, exist_ok=True)
-    cache.write_bytes(pickle.dumps(out))
-    return out
+            print(f"  stage 1 (shard {k}/{n}): {i + 1}/{len(todo)}", flush=True)
+    if not all(path(t).is_file() for t in targets):
+        return None
+    return [pickle.loads(path(t).read_bytes()) for t in targets]
 
 
 def align_cached(ds, objects, rec: dict, cfg: PixieConfig, base: PixieConfig, ests: dict) -> tuple[list, float]:
@@ -86,6 +107,10 @@ def main(argv=None) -> int:
     ap.add_argument("--preset", default="default")
     ap.add_argument("--variant", action="append", default=[])
     ap.add_argument("--out", type=Path, default=REPO / "out/bench/lmo_align_study.json")
+    ap.add_argument("--shard", default="0/1", help="K/N: compute stage 1 for targets[K::N] only (one process per core);"
+                    " the variants run once every shard's targets are cached")
+    ap.add_argument("--no-default", action="store_true", help="only the --variant rows (and 'no alignment')")
+    ap.add_argument("--ar", action="store_true", help="also score each variant's poses with AR (MSSD/MSPD)")
     args = ap.parse_args(argv)
     ds = L.BopDataset(args.dataset)
     objects = L.ObjectCache(ds)
@@ -93,8 +118,12 @@ def main(argv=None) -> int:
     base = PixieConfig.from_preset(args.preset).apply_overrides(["align.enabled=false"])
     key = hashlib.sha256(json.dumps([TAG, args.preset, base.digest(), [(t.scene_id, t.im_id, t.obj_id) for t in targets]],
                                     default=str).encode()).hexdigest()[:12]
-    cached = stage1(ds, objects, targets, base, REPO / "out/bench/lmo_align_study" / f"{key}.pkl")
-    variants = [("no alignment", None), ("default", [])] + [(v.partition(":")[0], L.parse_config_arg(v)[1])
+    k, n = (int(v) for v in args.shard.split("/"))
+    cached = stage1(ds, objects, targets, base, REPO / "out/bench/lmo_align_study" / f"{key}.pkl", (k, n))
+    if cached is None:
+        print(f"stage 1 (cache {key}): shard {k}/{n} done; other shards' targets still missing")
+        return 0
+    variants = [("no alignment", None)] + ([] if args.no_default else [("default", [])]) + [(v.partition(":")[0], L.parse_config_arg(v)[1])
                                                            for v in args.variant]
     rows = []
     print(f"{len(cached)} targets (preset {args.preset}, stage-1 cache {key})")
@@ -102,32 +131,50 @@ def main(argv=None) -> int:
     print("|---|---|---|---|---|")
     ests: dict[int, PoseEstimator] = {}
     for name, overrides in variants:
-        hits, anyr, rots, secs, per = 0, 0, [], 0.0, []
+        hits, anyr, rots, secs, per, poses = 0, 0, [], 0.0, [], []
         cfg = PixieConfig.from_preset(args.preset).apply_overrides(["align.enabled=true"] + (overrides or []))
         for rec in cached:
             sid, iid, oid = rec["target"]
             od = objects.eval_data(oid)
             g = L.gt_instance(ds, rec["t"])
+            if not rec["hyps"]:  # no hypothesis at all: a miss in every variant
+                per.append(False)
+                rots.append(180.0)
+                continue
             if overrides is None:
                 best = rec["hyps"][0]
                 e = L.pose_errors(od, best.T_cam_from_obj, g.T_cam_from_obj)
                 hits += bool(e["add_ok"])
                 rots.append(e["rot_err"])
                 per.append(bool(e["add_ok"]))
+                poses.append((rec, best))
                 continue
             hyps, dt = align_cached(ds, objects, rec, cfg, base, ests)
             secs += dt
             e = L.pose_errors(od, hyps[0].T_cam_from_obj, g.T_cam_from_obj)
+            poses.append((rec, hyps[0]))
             hits += bool(e["add_ok"])
             per.append(bool(e["add_ok"]))
             rots.append(e["rot_err"])
             anyr += any(L.pose_errors(od, h.T_cam_from_obj, g.T_cam_from_obj)["add_ok"]
                         for h in hyps if h.source in ("aligned", "flip"))
         n = len(cached)
+        per_obj: dict[str, list[bool]] = {}
+        for rec, ok in zip(cached, per):
+            per_obj.setdefault(str(rec["target"][2]), []).append(ok)
+        ar = None
+        if args.ar:
+            ests_ = [PoseEstimate(r["target"][0], r["target"][1], r["target"][2], float(h.score), h.T_cam_from_obj,
+                                  r.get("seconds", 0.0) + 0.0) for r, h in poses]
+            sc = evaluate(ds, ests_, metrics=["mssd", "mspd"], targets=[r["t"] for r in cached], n_points=2000)
+            ar = sc.overall.get("AR_noVSD")
         rows.append({"variant": name, "overrides": overrides, "hits": hits, "n": n, "any": anyr,
-                     "med_rot": float(np.median(rots)), "s_per_target": secs / n, "per_target": per})
-        print(f"| {name} | {hits}/{n} ({100 * hits / n:.1f} %) | {anyr} | {np.median(rots):.1f} | {secs / n:.2f} |",
-              flush=True)
+                     "med_rot": float(np.median(rots)), "s_per_target": secs / n, "per_target": per,
+                     "per_object": {o: float(np.mean(v)) for o, v in sorted(per_obj.items(), key=lambda kv: int(kv[0]))},
+                     "ar_mssd_mspd": ar,
+                     "poses": [[r["target"], h.T_cam_from_obj.tolist()] for r, h in poses]})
+        print(f"| {name} | {hits}/{n} ({100 * hits / n:.1f} %) | {anyr} | {np.median(rots):.1f} | {secs / n:.2f} |"
+              + ("" if ar is None else f" AR {ar:.3f}"), flush=True)
     args.out.parent.mkdir(parents=True, exist_ok=True)
     args.out.write_text(json.dumps({"args": vars(args) | {"dataset": str(args.dataset), "out": str(args.out)},
                                     "rows": rows}, indent=1, default=str))

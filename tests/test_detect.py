@@ -9,7 +9,9 @@ import numpy as np
 import pytest
 import trimesh
 
-from pixie.cues.detect import TemplateDetector, linemod_available
+from pixie.cues.detect import TemplateDetector, linemod_available, template_region
+from pixie.cues.region import colour_index
+from pixie.errors import PixieError
 from pixie.geometry.camera import make_K, make_T, rotation_angle_deg
 from pixie.geometry.mesh import from_arrays
 from pixie.geometry.render import Renderer
@@ -79,6 +81,46 @@ def test_proposals_find_the_part_among_distractors_and_clutter(query_est, proc_m
         best += bool(ious and ious[0] >= 0.7)
         top3 += max(ious, default=0.0) >= 0.7
     assert best >= 2 and top3 >= 3, (best, top3)
+
+
+def test_template_region_tells_an_object_region_from_background():
+    """template_region: a silhouette on a region whose colours differ from its surroundings separates (near 1); the
+    same silhouette moved onto uniform texture does not (near 0.5); an empty one is 0.5 (no evidence)."""
+    rng = np.random.default_rng(3)
+    img = rng.integers(0, 256, (240, 320, 3), dtype=np.uint8)  # random-colour background: every colour everywhere
+    yy, xx = np.mgrid[:240, :320]
+    disc = (yy - 120) ** 2 + (xx - 100) ** 2 < 40 ** 2
+    img[disc] = (200, 30, 30)
+    idx = colour_index(img, 3)
+    on = template_region(idx, disc)
+    off = template_region(idx, np.roll(disc, 150, axis=1))  # the same shape on background only
+    assert on > 0.9 and abs(off - 0.5) < 0.1, (on, off)
+    assert template_region(idx, np.zeros_like(disc)) == 0.5
+
+
+def test_region_weight_needs_the_renderer_and_orders_by_the_sum(query_est, proc_mesh, scene_parts, line2d_cache):
+    """propose(region_weight > 0) without a renderer is a clear error; with one, the pooled proposals carry their
+    region and the order is LINE-2D + vote + region terms (every returned rank_score is that sum, best first), and
+    the part's box is found (the scenes of the test above; measured, session 22: the best proposal in 4 of 4, IoU
+    0.79-0.93, its region 0.85-0.93; without the region term 3 of 4). Asserted with one scene of margin."""
+    tpl = ContourTemplates.from_arrays(query_est.refs.templates)
+    kw = dict(distance_mm=distance(proc_mesh), cache_dir=line2d_cache / "pixie" / "line2d")
+    img, T = scene(proc_mesh, scene_parts, 0)
+    with pytest.raises(PixieError, match="renderer"):
+        TemplateDetector(tpl, K, proc_mesh.diameter, **kw).propose(img, region_weight=0.5)
+    det = TemplateDetector(tpl, K, proc_mesh.diameter, renderer=scene_parts[0], **kw)
+    best = top3 = 0
+    for seed in range(4):
+        img, T = scene(proc_mesh, scene_parts, seed)
+        props = det.propose(img, top_k=3, region_weight=0.5, region_pool=20)
+        assert all(0.0 <= p.region <= 1.0 for p in props)
+        ranks = [p.score + 3.0 * p.votes + 0.5 * 100 * (p.region - 0.5) for p in props]
+        assert np.allclose(ranks, [p.rank_score for p in props]) and ranks == sorted(ranks, reverse=True)
+        gt = projected_box(T, K, proc_mesh.hull_vertices)
+        ious = [box_iou(p.box_xyxy, gt) for p in props]
+        best += ious[0] >= 0.7
+        top3 += max(ious) >= 0.7
+    assert best >= 3 and top3 >= 3, (best, top3)
 
 
 def test_a_proposal_stands_for_its_pose(query_est, proc_mesh, scene_parts, line2d_cache):

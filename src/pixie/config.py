@@ -466,6 +466,13 @@ class DetectConfig(_Section):
     vote_pool: int = 10
     vote_weight: float = 3.0
     vote_inside: float = 0.8
+    # ... + region_weight x 100 x (colour-region separation - 0.5) of the best region_pool boxes' rendered template poses
+    # (pixie.cues.detect.template_region; band region_band of the silhouette's side). Rule (session 22, LM-O's first 24
+    # of select_targets(48)): most right boxes among the best 5, then the best 1, then the smaller weight, on the grid
+    # 0/0.1/0.2/0.3/0.5/1 x pool 20/50/100; checked on the defects benchmark (bench/RESULTS.md "Session 22")
+    region_pool: int = 50
+    region_weight: float = 0.5
+    region_band: float = 0.15
     stop_confidence: float = 0.9  # no more proposals are estimated once a pose is accepted at this (0: never stop)
     min_accept: float = 0.5
     min_box_iou: float = 0.5  # (the rule without accept coefficients)
@@ -491,6 +498,8 @@ RANGES.update({"detect.proposals": (1, 1000, True), "detect.threshold": (0, 100,
                "detect.grow_ratio": (0, None, True),
                "detect.vote_pool": (1, 1000, True), "detect.vote_weight": (0, None, True),
                "detect.vote_inside": (0, 1, False), "detect.stop_confidence": (0, 1, True),
+               "detect.region_pool": (0, 1000, True), "detect.region_weight": (0, None, True),
+               "detect.region_band": (0, 1, False),
                "detect.min_accept": (0, 1, True), "detect.min_box_iou": (0, 1, True)})
 
 

@@ -13,9 +13,10 @@ Measured (bench/RESULTS.md, "Detection"): on rendered scenes with clutter and di
 best proposal in 3 of 4 scenes; on the 288 held-out photos of the defects benchmark (replayed from the 20 best
 boxes LINE-2D proposes) the right box comes first for 87 % and is among the best 5 for 93 %, once the part matches
 inside a box vote for it (LINE-2D's order alone: 50 % and 89 %; a part of the assembly often scores above the whole:
-see ``grow_ratio`` and ``vote_weight``); on LM-O's real clutter LINE-2D ranks background higher (the right box among
-the best 5 for 25 % of 24 targets, 13 s per photo): there, give boxes or external detections (``pixie run
---detections``).
+see ``grow_ratio`` and ``vote_weight``). On LM-O's real clutter LINE-2D ranks background higher; weighing each
+box's colour-region separation (``region_weight``: the template pose's rendered silhouette against a band around it)
+puts the right box among the best 5 for 42 % of 48 targets instead of 19 % (13 s per photo): still, give boxes or
+external detections there (``pixie run --detections``).
 
 >>> det = TemplateDetector(ContourTemplates.from_arrays(refs.templates), K, diameter=refs.mesh.diameter)
 >>> props = det.propose(image, top_k=5)                  # list[Proposal], best first
@@ -32,14 +33,16 @@ from pathlib import Path
 import cv2
 import numpy as np
 
+from pixie.cues.region import band, colour_index, separation
 from pixie.errors import PixieError
 from pixie.geometry.camera import transform_points
+from pixie.geometry.render import Renderer
 from pixie.geometry.rotations import rotation_between
 from pixie.paths import write_atomic
 from pixie.pose.solve import box_iou, projected_box
 from pixie.references.templates import ContourTemplates
 
-__all__ = ["Proposal", "TemplateDetector", "linemod_available"]
+__all__ = ["Proposal", "TemplateDetector", "linemod_available", "template_region"]
 
 _LEVELS = 2  # cv2.linemod.getDefaultLINE(): pyramid levels with spreading T = 5 (fine) and 8 (coarse)
 
@@ -60,7 +63,11 @@ class Proposal:
     scale: float  # template px -> image px
     centre: np.ndarray  # image px of the object centre's projection
     votes: int = 0  # other proposals of the pool lying inside this box (parts of the object that fired on their own)
-    rank_score: float = float("nan")  # what the proposals are ordered by: score + vote_weight * votes
+    # colour-region separation (0.5 = none, 1 = perfect) of the template pose's rendered silhouette against a band
+    # around it (:func:`template_region`); NaN where not computed
+    region: float = float("nan")
+    # what the proposals are ordered by: score + vote_weight * votes + region_weight * 100 * (region - 0.5)
+    rank_score: float = float("nan")
 
     @property
     def box_xywh(self) -> np.ndarray:
@@ -111,6 +118,21 @@ def voted_order(scores: np.ndarray, boxes: list[np.ndarray], weight: float,
     return votes, np.argsort(-(np.asarray(scores, np.float64) + weight * votes), kind="stable")
 
 
+def template_region(idx: np.ndarray, mask: np.ndarray, band_share: float = 0.15, n_bins: int = 512) -> float:
+    """How well the photo's colours inside ``mask`` (a proposal's rendered silhouette) separate from those in a band
+    around it (``band_share`` of the silhouette's longer side wide): :func:`pixie.cues.region.separation` of the
+    colour indices ``idx`` (:func:`pixie.cues.region.colour_index`); 0.5 (no evidence) for an empty silhouette.
+
+    An object is a region that differs from its surroundings; a box where LINE-2D fired on background clutter
+    (edges of shelves, other objects) mostly is not: the silhouette there shares the colours around it."""
+    mask = np.asarray(mask, bool)
+    if mask.sum() < 20:
+        return 0.5
+    ys, xs = np.nonzero(mask)
+    side = max(int(xs.max() - xs.min()) + 1, int(ys.max() - ys.min()) + 1)
+    return float(separation(idx, mask, band(mask, max(int(round(band_share * side)), 2)), n_bins))
+
+
 def _suppresses(better: np.ndarray, box: np.ndarray, nms_iou: float, grow_ratio: float | None) -> bool:
     """Whether a kept box ``better`` suppresses ``box`` (see :meth:`TemplateDetector.propose`)."""
     if box_iou(better, box) < nms_iou:
@@ -133,6 +155,8 @@ class TemplateDetector:
     n_features : features per template (LINE-MOD's default 63)
     cache_dir : where the LINE-2D template file is kept between processes (keyed by the templates and every
         setting above); without it each detector writes its own (~10 s for 36 000 templates, reading it ~2 s)
+    renderer : the object's renderer (its mesh, mm): needed for ``propose(region_weight > 0)``, which renders each
+        proposal's template pose to weigh its colour-region separation
 
     Templates = views x rolls x scales (300 x 24 x 4 = 28 800 for a 1.8:1 distance range: ~6 s to build, 0.1–2 s
     per 640 x 480 photo); a narrower distance range is faster and more selective.
@@ -141,11 +165,13 @@ class TemplateDetector:
     def __init__(self, templates: ContourTemplates, K: np.ndarray, diameter: float,
                  sizes_px: tuple[float, float] = (60.0, 360.0), distance_mm: tuple[float, float] | None = None,
                  n_views: int = 300, roll_deg: float = 15.0, scale_step: float = 1.2, n_features: int = 63,
-                 cache_dir: str | os.PathLike | None = None):
+                 cache_dir: str | os.PathLike | None = None, renderer: Renderer | None = None):
         if not linemod_available():
             raise PixieError("finding the object without a box needs OpenCV's contrib modules (cv2.linemod): "
                              "pip install opencv-contrib-python-headless")
         self.tpl = templates
+        self.K = np.asarray(K, np.float64)
+        self.renderer = renderer
         f = float(K[0, 0])
         f_t = float(templates.K[0, 0])
         z_t = float(np.median(np.linalg.norm(templates.poses[:, :3, 3], axis=1)))  # template camera distance
@@ -276,7 +302,8 @@ class TemplateDetector:
 
     def propose(self, image: np.ndarray, top_k: int = 5, threshold: float = 70.0, nms_iou: float = 0.3,
                 grow_ratio: float | None = 1.3, vote_pool: int = 10, vote_weight: float = 3.0,
-                vote_inside: float = 0.8, max_matches: int = 20000) -> list[Proposal]:
+                vote_inside: float = 0.8, region_pool: int = 50, region_weight: float = 0.0,
+                region_band: float = 0.15, max_matches: int = 20000) -> list[Proposal]:
         """The ``top_k`` best distinct boxes of RGB ``image``, best first.
 
         Non-maximum suppression: a box overlapping a better one by IoU >= ``nms_iou`` is dropped, unless its area is
@@ -285,14 +312,23 @@ class TemplateDetector:
         would then let the part hide the whole (on the defects benchmark's first 48 targets, the right box among the
         best 5: 0.62 with plain suppression, 0.90 with ``grow_ratio`` 1.3; bench/RESULTS.md, "Detection").
 
-        Those part matches are then evidence for the whole: the best ``vote_pool`` distinct boxes are ordered by
-        LINE-2D similarity + ``vote_weight`` x the number of other pool boxes lying inside them (``vote_inside`` of
-        their area; :func:`votes_inside`), and the first ``top_k`` returned (``vote_weight`` 0: LINE-2D's order). On
-        the defects benchmark's 288 held-out photos the right box comes first for 0.87 instead of 0.50, and is among
-        the best 5 for 0.93 instead of 0.89 (bench/RESULTS.md, "Session 18").
+        Those part matches are then evidence for the whole: the best ``vote_pool`` distinct boxes get
+        ``vote_weight`` x the number of other pool boxes lying inside them (``vote_inside`` of their area;
+        :func:`votes_inside`). On the defects benchmark's 288 held-out photos the right box then comes first for
+        0.87 instead of 0.50, and is among the best 5 for 0.93 instead of 0.89 (bench/RESULTS.md, "Session 18").
+
+        With ``region_weight`` > 0 (needs the detector's ``renderer``) the best ``region_pool`` distinct boxes also
+        get ``region_weight`` x 100 x (separation - 0.5): their template pose (:meth:`pose`) is rendered and the
+        photo's colours inside the silhouette are compared with a band around it (:func:`template_region`). On
+        LM-O's real clutter, where LINE-2D fires on background edges, this doubles the right boxes among the best 5
+        (bench/RESULTS.md, "Session 22"). The boxes are returned in the order of LINE-2D similarity + both terms.
         """
+        if region_weight > 0 and self.renderer is None:
+            raise PixieError("propose(region_weight > 0) renders each proposal's pose: build the TemplateDetector "
+                             "with the object's renderer")
         bgr = np.ascontiguousarray(image[..., ::-1])
         matches, _ = self._det.match([bgr], float(threshold))
+        n_pool = max(top_k, vote_pool if vote_weight > 0 else 0, region_pool if region_weight > 0 else 0)
         out: list[Proposal] = []
         for m in matches[:max_matches]:
             pl = self.placements[m.template_id]
@@ -301,10 +337,31 @@ class TemplateDetector:
                 continue
             out.append(Proposal(box_xyxy=box, score=float(m.similarity), view=pl.view, angle=pl.angle,
                                 scale=pl.scale, centre=np.array([m.x, m.y], np.float64) + pl.origin))
-            if len(out) >= max(top_k, vote_pool if vote_weight > 0 else 0):
+            if len(out) >= n_pool:
                 break
-        votes, order = voted_order(np.array([p.score for p in out]), [p.box_xyxy for p in out], vote_weight,
-                                   vote_inside)
+        pool = out[: max(top_k, vote_pool)]  # (the vote's pool is never smaller than what is returned)
+        votes = np.zeros(len(out), int)
+        if vote_weight > 0 and pool:
+            votes[: len(pool)] = votes_inside([p.box_xyxy for p in pool], vote_inside)
+        if region_weight > 0 and out:
+            self._add_regions(image, out[: max(region_pool, 0)], region_band)
+        rank = []
         for p, v in zip(out, votes):
-            p.votes, p.rank_score = int(v), p.score + vote_weight * float(v)
+            p.votes = int(v)
+            reg = 0.0 if not np.isfinite(p.region) else region_weight * 100.0 * (p.region - 0.5)
+            p.rank_score = p.score + vote_weight * float(v) + reg
+            rank.append(p.rank_score)
+        order = np.argsort(-np.asarray(rank, np.float64), kind="stable")  # ties keep LINE-2D's order
         return [out[i] for i in order[:top_k]]
+
+    def _add_regions(self, image: np.ndarray, props: list[Proposal], band_share: float) -> None:
+        """Set each proposal's ``region`` (:func:`template_region` of its template pose rendered at photo size)."""
+        H, W = image.shape[:2]
+        idx = colour_index(image, 3)
+        mesh = self.renderer.mesh
+        for p in props:
+            T = self.pose(p, self.K, mesh.center, mesh.hull_vertices)
+            if (transform_points(T, mesh.hull_vertices)[:, 2] <= 0).any():
+                p.region = 0.5  # partly behind the camera: no silhouette to judge
+                continue
+            p.region = template_region(idx, self.renderer.render(T, self.K, H, W).mask, band_share)

@@ -64,7 +64,7 @@ def detector_for(est, K: np.ndarray, **kw) -> TemplateDetector:
     if key not in cache:
         cache.clear()  # one focal at a time: templates are a few MB
         cache[key] = TemplateDetector(ContourTemplates.from_arrays(est.refs.templates), K,
-                                      diameter=est.refs.mesh.diameter, **kw)
+                                      diameter=est.refs.mesh.diameter, renderer=est.object_renderer(), **kw)
     return cache[key]
 
 
@@ -118,7 +118,9 @@ def find_objects(est, image: np.ndarray, K: np.ndarray, top_k: int | None = None
         t = time.perf_counter()
         props = [p for p in det.propose(search, top_k=dc.proposals, threshold=dc.threshold, nms_iou=dc.nms_iou,
                                         grow_ratio=dc.grow_ratio or None, vote_pool=dc.vote_pool,
-                                        vote_weight=dc.vote_weight, vote_inside=dc.vote_inside)
+                                        vote_weight=dc.vote_weight, vote_inside=dc.vote_inside,
+                                        region_pool=dc.region_pool, region_weight=dc.region_weight,
+                                        region_band=dc.region_band)
                  if not any(box_iou(p.box_xyxy, q) >= 0.5 for _, q, _ in kept)]
         t_propose += time.perf_counter() - t
         n_before = len(kept)
