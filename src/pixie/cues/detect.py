@@ -15,7 +15,7 @@ boxes LINE-2D proposes) the right box comes first for 87 % and is among the best
 inside a box vote for it (LINE-2D's order alone: 50 % and 89 %; a part of the assembly often scores above the whole:
 see ``grow_ratio`` and ``vote_weight``). On LM-O's real clutter LINE-2D ranks background higher; weighing each
 box's colour-region separation (``region_weight``: the template pose's rendered silhouette against a band around it)
-puts the right box among the best 5 for 42 % of 48 targets instead of 19 % (13 s per photo): still, give boxes or
+puts the right box among the best 5 for 33 % of 104 held-out targets instead of 16 % (13 s per photo): still, give boxes or
 external detections there (``pixie run --detections``).
 
 >>> det = TemplateDetector(ContourTemplates.from_arrays(refs.templates), K, diameter=refs.mesh.diameter)
