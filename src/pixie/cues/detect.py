@@ -10,13 +10,13 @@ suppression keeps the best few; :func:`pixie.pipeline.find.find_objects` then ve
 pipeline and keeps those whose pose the photo supports.
 
 Measured (bench/RESULTS.md, "Detection"): on rendered scenes with clutter and distractors the object's box is the
-best proposal in 3 of 4 scenes; on the 288 held-out photos of the defects benchmark (replayed from the 20 best
-boxes LINE-2D proposes) the right box comes first for 87 % and is among the best 5 for 93 %, once the part matches
-inside a box vote for it (LINE-2D's order alone: 50 % and 89 %; a part of the assembly often scores above the whole:
-see ``grow_ratio`` and ``vote_weight``). On LM-O's real clutter LINE-2D ranks background higher; weighing each
-box's colour-region separation (``region_weight``: the template pose's rendered silhouette against a band around it)
-puts the right box among the best 5 for 33 % of 104 held-out targets instead of 16 % (13 s per photo): still, give boxes or
-external detections there (``pixie run --detections``).
+best proposal in 3 of 4 scenes (4 of 4 with the region term); on the 288 held-out photos of the defects benchmark
+the right box comes first for 90 % and is among the best 5 for 96 % (LINE-2D's order alone: 50 % and 89 %; with
+the part votes only: 87 % and 93 %; a part of the assembly often scores above the whole: see ``grow_ratio`` and
+``vote_weight``). On LM-O's real clutter LINE-2D ranks background higher; weighing each box's colour-region
+separation (``region_weight``: the template pose's rendered silhouette against a band around it) puts the right box
+among the best 5 for 33 % of 104 held-out targets instead of 16 % (13 s per photo): still, give boxes or external
+detections there (``pixie run --detections``).
 
 >>> det = TemplateDetector(ContourTemplates.from_arrays(refs.templates), K, diameter=refs.mesh.diameter)
 >>> props = det.propose(image, top_k=5)                  # list[Proposal], best first
