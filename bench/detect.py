@@ -36,7 +36,7 @@ from pixie.cues.detect import TemplateDetector  # noqa: E402
 from pixie.errors import PixieError  # noqa: E402
 from pixie.geometry.render import Renderer  # noqa: E402
 from pixie.pipeline.estimator import PoseEstimator  # noqa: E402
-from pixie.pipeline.find import detector_for, find_objects  # noqa: E402
+from pixie.pipeline.find import detector_for, find_objects, propose_kwargs  # noqa: E402
 from pixie.pose.solve import box_iou, projected_box  # noqa: E402
 from pixie.references.templates import ContourTemplates  # noqa: E402
 
@@ -135,11 +135,7 @@ def main(argv=None) -> int:
                         "iou_pose": iou_pose, "confidence": None if best is None else best.confidence,
                         "seconds_find": found.timings["total"], "verdicts": found.verdicts}
         else:
-            props = dets[t.obj_id].propose(img, top_k=max(args.top, args.rerank), nms_iou=dc.nms_iou,
-                                           grow_ratio=dc.grow_ratio or None, threshold=dc.threshold,
-                                           vote_pool=dc.vote_pool, vote_weight=dc.vote_weight,
-                                           vote_inside=dc.vote_inside, region_pool=dc.region_pool,
-                                           region_weight=dc.region_weight, region_band=dc.region_band)
+            props = dets[t.obj_id].propose(img, top_k=max(args.top, args.rerank), **propose_kwargs(dc))
             dt = time.perf_counter() - t0
         box_obj = xyxy(g.box_obj)
         amodal = [box_iou(p.box_xyxy, box_obj) for p in props]  # every proposal's, the best --top ones reported below

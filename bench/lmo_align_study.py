@@ -10,9 +10,10 @@ All 716 targets, stage 1 on both cores, then the rows with AR (the ablation tabl
     PYTHONPATH=src .venv/bin/python bench/lmo_align_study.py --max-targets 716 --shard 0/2 &   # and --shard 1/2
     PYTHONPATH=src .venv/bin/python bench/lmo_align_study.py --max-targets 716 --ar --variant ...
 
-Stage 1 (cached in ``out/bench/lmo_align_study/<hash>/`` one pickle per target, keyed by the preset, the targets and
-the code tag; an older single ``<hash>.pkl`` is still read): the pipeline up to and including the shape stage (``PoseEstimator.estimate`` with ``align.enabled=false``) per target,
-keeping every hypothesis. Stage 2, per variant: :meth:`PoseEstimator.align_stage` on copies of those hypotheses;
+Stage 1 (cached in ``out/bench/lmo_align_study/<hash>/``, one pickle per target, keyed by the preset, the whole
+config's digest, the targets and the code tag; an older single ``<hash>.pkl`` is still read): the pipeline up to and
+including the shape stage (``PoseEstimator.estimate`` with ``align.enabled=false``) per target, keeping every
+hypothesis. Stage 2, per variant: :meth:`PoseEstimator.align_stage` on copies of those hypotheses;
 the chosen pose is scored (ADD(-S)<0.1d, rotation error) and every aligned candidate's correctness recorded. The
 row ``no alignment`` is the cached pipeline's own choice. Prints one table (hits, share, any aligned candidate
 right, median rotation error, seconds per target of the stage).
@@ -165,7 +166,7 @@ def main(argv=None) -> int:
         ar = None
         if args.ar:
             ests_ = [PoseEstimate(r["target"][0], r["target"][1], r["target"][2], float(h.score), h.T_cam_from_obj,
-                                  r.get("seconds", 0.0) + 0.0) for r, h in poses]
+                                  r.get("seconds", 0.0)) for r, h in poses]
             sc = evaluate(ds, ests_, metrics=["mssd", "mspd"], targets=[r["t"] for r in cached], n_points=2000)
             ar = sc.overall.get("AR_noVSD")
         rows.append({"variant": name, "overrides": overrides, "hits": hits, "n": n, "any": anyr,

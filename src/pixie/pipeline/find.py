@@ -31,7 +31,7 @@ from pixie.pose.results import PoseResult
 from pixie.pose.solve import box_iou, projected_box, projected_box_in_image
 from pixie.references.templates import ContourTemplates
 
-__all__ = ["FindResult", "find_objects", "detector_for"]
+__all__ = ["FindResult", "find_objects", "detector_for", "propose_kwargs"]
 
 
 @dataclass(kw_only=True)
@@ -66,6 +66,13 @@ def detector_for(est, K: np.ndarray, **kw) -> TemplateDetector:
         cache[key] = TemplateDetector(ContourTemplates.from_arrays(est.refs.templates), K,
                                       diameter=est.refs.mesh.diameter, renderer=est.object_renderer(), **kw)
     return cache[key]
+
+
+def propose_kwargs(dc) -> dict:
+    """The keywords of :meth:`TemplateDetector.propose` that a ``config.detect`` section sets (all but ``top_k``)."""
+    return dict(threshold=dc.threshold, nms_iou=dc.nms_iou, grow_ratio=dc.grow_ratio or None, vote_pool=dc.vote_pool,
+                vote_weight=dc.vote_weight, vote_inside=dc.vote_inside, region_pool=dc.region_pool,
+                region_weight=dc.region_weight, region_band=dc.region_band)
 
 
 def _instance_mask(est, T: np.ndarray, K: np.ndarray, shape: tuple[int, int], grow_px: int = 4) -> np.ndarray:
@@ -116,11 +123,7 @@ def find_objects(est, image: np.ndarray, K: np.ndarray, top_k: int | None = None
     search, covered = image, np.zeros(image.shape[:2], bool)
     for _round in range(n_max):
         t = time.perf_counter()
-        props = [p for p in det.propose(search, top_k=dc.proposals, threshold=dc.threshold, nms_iou=dc.nms_iou,
-                                        grow_ratio=dc.grow_ratio or None, vote_pool=dc.vote_pool,
-                                        vote_weight=dc.vote_weight, vote_inside=dc.vote_inside,
-                                        region_pool=dc.region_pool, region_weight=dc.region_weight,
-                                        region_band=dc.region_band)
+        props = [p for p in det.propose(search, top_k=dc.proposals, **propose_kwargs(dc))
                  if not any(box_iou(p.box_xyxy, q) >= 0.5 for _, q, _ in kept)]
         t_propose += time.perf_counter() - t
         n_before = len(kept)
