@@ -7,7 +7,7 @@ Usage::
 
 The run must list at least the 20 best boxes per target in LINE-2D's order (``bench/detect.py --top 20 --set
 detect.vote_weight=0``). For each weight w and pool n of the grid, the first n boxes are re-ordered by similarity +
-w x the number of other pool boxes lying inside them (at least 0.8 of their area; :func:`pixie.cues.detect.voted_order`,
+w x the number of other pool boxes lying inside them (at least 0.8 of their area; :func:`pixie.cues.detect.rank_scores`,
 what :meth:`TemplateDetector.propose` calls), and the recall of the best 1 / 3 / 5 (IoU >= 0.5 with the GT amodal box)
 is reported on the targets ``--max-targets FIT`` picks (the fitting set) and on the others (held out). Rule: most right
 boxes among the best 5 on the fitting set, then among the best 1, then the smaller weight, then the smaller pool.
@@ -23,7 +23,7 @@ import numpy as np
 
 import common as L  # noqa: E402  (bench/common.py: targets; puts src/ on the path)
 
-from pixie.cues.detect import voted_order  # noqa: E402
+from pixie.cues.detect import rank_scores, votes_inside  # noqa: E402
 
 WEIGHTS = (0.0, 1.0, 2.0, 3.0, 5.0, 8.0)
 POOLS = (10, 20)
@@ -32,7 +32,9 @@ POOLS = (10, 20)
 def reorder(r: dict, w: float, n: int) -> list[float]:
     """The IoUs of row ``r``'s first ``n`` proposals in the voted order."""
     pr = r["proposals"]
-    _, order = voted_order(np.asarray(pr["scores"][:n]), [np.asarray(b, np.float64) for b in pr["boxes"][:n]], w)
+    boxes = [np.asarray(b, np.float64) for b in pr["boxes"][:n]]
+    votes = votes_inside(boxes) if w > 0 else np.zeros(len(boxes), int)
+    _, order = rank_scores(np.asarray(pr["scores"][:n]), votes, w)
     return [pr["ious"][i] for i in order]
 
 

@@ -10,9 +10,14 @@ All 716 targets, stage 1 on both cores, then the rows with AR (the ablation tabl
     PYTHONPATH=src .venv/bin/python bench/lmo_align_study.py --max-targets 716 --shard 0/2 &   # and --shard 1/2
     PYTHONPATH=src .venv/bin/python bench/lmo_align_study.py --max-targets 716 --ar --variant ...
 
-Stage 1 (cached in ``out/bench/lmo_align_study/<hash>/``, one pickle per target, keyed by the preset, the whole
-config's digest, the targets and the code tag; an older single ``<hash>.pkl`` is still read): the pipeline up to and
-including the shape stage (``PoseEstimator.estimate`` with ``align.enabled=false``) per target, keeping every
+Every candidate of the aligned stage, for offline selection studies (``bench/lmo_rank.py``), stage 2 on both cores::
+
+    PYTHONPATH=src .venv/bin/python bench/lmo_align_study.py --max-targets 716 --ar --part 0/2 \
+        --dump out/bench/rank/dump_0.pkl --out out/bench/rank/study_0.json &   # and --part 1/2 ... dump_1 / study_1
+
+Stage 1 (cached in ``out/bench/lmo_align_study/<hash>/``, one pickle per target, keyed by the preset, the digest of
+the config sections stage 1 reads (:func:`stage1_digest`: all but ``align`` and ``detect``), the targets and the
+code tag; an older single ``<hash>.pkl`` is still read): the pipeline up to and including the shape stage (``PoseEstimator.estimate`` with ``align.enabled=false``) per target, keeping every
 hypothesis. Stage 2, per variant: :meth:`PoseEstimator.align_stage` on copies of those hypotheses;
 the chosen pose is scored (ADD(-S)<0.1d, rotation error) and every aligned candidate's correctness recorded. The
 row ``no alignment`` is the cached pipeline's own choice. Prints one table (hits, share, any aligned candidate
@@ -43,6 +48,13 @@ from pixie.eval import evaluate  # noqa: E402
 from pixie.eval.datasets import PoseEstimate  # noqa: E402
 
 TAG = "s9-1"  # s9: hypotheses keep their PnP inliers (support_uv, support_xyz)
+
+
+def stage1_digest(cfg: PixieConfig) -> str:
+    """What stage 1 depends on: the config without its ``align`` section (stage 1 runs with alignment off; every
+    variant sets its own) and its ``detect`` section (the detector's, not read with a given box)."""
+    d = {k: v for k, v in cfg.to_dict().items() if k not in ("align", "detect")}
+    return hashlib.sha256(json.dumps(d, sort_keys=True).encode()).hexdigest()[:16]
 
 
 def _stage1_record(ds, est, t) -> dict:
@@ -101,6 +113,21 @@ def align_cached(ds, objects, rec: dict, cfg: PixieConfig, base: PixieConfig, es
     return est.align_stage(q, hyps), time.perf_counter() - t0
 
 
+def candidate_records(rec: dict, hyps: list, od, g) -> dict:
+    """One target's aligned-stage candidates (those with an aligned fit, in the stage's order) with their pose,
+    source, scores and terms, and their errors against the ground truth (``pose_errors``)."""
+    out = []
+    for rank, h in enumerate(hyps):
+        if "fit" not in h.terms:
+            continue
+        e = L.pose_errors(od, h.T_cam_from_obj, g.T_cam_from_obj)
+        out.append({"rank": rank, "source": h.source, "T": np.asarray(h.T_cam_from_obj), "score": float(h.score),
+                    "match_score": float(h.match_score), "n_inliers": int(h.n_inliers), "box_iou": float(h.box_iou),
+                    "terms": {k: float(v) for k, v in h.terms.items() if v is not None}, **e})
+    return {"target": rec["target"], "box": np.asarray(rec["box"]), "T_gt": np.asarray(g.T_cam_from_obj),
+            "diameter": od.diameter, "symmetric": od.symmetric, "best_match": rec["best_match"], "cands": out}
+
+
 def main(argv=None) -> int:
     ap = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
     ap.add_argument("--dataset", type=Path, default=L.DEFAULT_DATASET)
@@ -112,18 +139,24 @@ def main(argv=None) -> int:
                     " the variants run once every shard's targets are cached")
     ap.add_argument("--no-default", action="store_true", help="only the --variant rows (and 'no alignment')")
     ap.add_argument("--ar", action="store_true", help="also score each variant's poses with AR (MSSD/MSPD)")
+    ap.add_argument("--part", default="0/1", help="K/N: run the variants on the cached targets[K::N] only (stage 2 on"
+                    " both cores, each with its own --out / --dump; the rows then cover that part)")
+    ap.add_argument("--dump", type=Path, default=None, help="write every aligned-stage candidate of each variant (pose,"
+                    " terms, errors against the GT) to this pickle, for offline selection studies (bench/lmo_rank.py)")
     args = ap.parse_args(argv)
     ds = L.BopDataset(args.dataset)
     objects = L.ObjectCache(ds)
     targets = L.select_targets(ds, args.max_targets)
     base = PixieConfig.from_preset(args.preset).apply_overrides(["align.enabled=false"])
-    key = hashlib.sha256(json.dumps([TAG, args.preset, base.digest(), [(t.scene_id, t.im_id, t.obj_id) for t in targets]],
+    key = hashlib.sha256(json.dumps([TAG, args.preset, stage1_digest(base), [(t.scene_id, t.im_id, t.obj_id) for t in targets]],
                                     default=str).encode()).hexdigest()[:12]
     k, n = (int(v) for v in args.shard.split("/"))
     cached = stage1(ds, objects, targets, base, REPO / "out/bench/lmo_align_study" / f"{key}.pkl", (k, n))
     if cached is None:
         print(f"stage 1 (cache {key}): shard {k}/{n} done; other shards' targets still missing")
         return 0
+    pk, pn = (int(v) for v in args.part.split("/"))
+    cached = cached[pk::pn]
     variants = [("no alignment", None)] + ([] if args.no_default else [("default", [])]) + [(v.partition(":")[0], L.parse_config_arg(v)[1])
                                                            for v in args.variant]
     rows = []
@@ -131,8 +164,9 @@ def main(argv=None) -> int:
     print("| variant | ADD(-S)<0.1d | any aligned right | med rot° | s/target |")
     print("|---|---|---|---|---|")
     ests: dict[int, PoseEstimator] = {}
+    dumps: dict[str, list] = {}
     for name, overrides in variants:
-        hits, anyr, rots, secs, per, poses = 0, 0, [], 0.0, [], []
+        hits, anyr, rots, secs, per, poses, dumped = 0, 0, [], 0.0, [], [], []
         cfg = PixieConfig.from_preset(args.preset).apply_overrides(["align.enabled=true"] + (overrides or []))
         for rec in cached:
             sid, iid, oid = rec["target"]
@@ -159,6 +193,8 @@ def main(argv=None) -> int:
             rots.append(e["rot_err"])
             anyr += any(L.pose_errors(od, h.T_cam_from_obj, g.T_cam_from_obj)["add_ok"]
                         for h in hyps if h.source in ("aligned", "flip"))
+            if args.dump is not None:
+                dumped.append(candidate_records(rec, hyps, od, g))
         n = len(cached)
         per_obj: dict[str, list[bool]] = {}
         for rec, ok in zip(cached, per):
@@ -174,9 +210,16 @@ def main(argv=None) -> int:
                      "per_object": {o: float(np.mean(v)) for o, v in sorted(per_obj.items(), key=lambda kv: int(kv[0]))},
                      "ar_mssd_mspd": ar,
                      "poses": [[r["target"], h.T_cam_from_obj.tolist()] for r, h in poses]})
+        if args.dump is not None:
+            dumps[name] = dumped
         print(f"| {name} | {hits}/{n} ({100 * hits / n:.1f} %) | {anyr} | {np.median(rots):.1f} | {secs / n:.2f} |"
               + ("" if ar is None else f" AR {ar:.3f}"), flush=True)
     args.out.parent.mkdir(parents=True, exist_ok=True)
+    if args.dump is not None:
+        args.dump.parent.mkdir(parents=True, exist_ok=True)
+        tmp = args.dump.with_suffix(".tmp")
+        tmp.write_bytes(pickle.dumps({"key": key, "preset": args.preset, "variants": dumps}))
+        tmp.replace(args.dump)
     args.out.write_text(json.dumps({"args": vars(args) | {"dataset": str(args.dataset), "out": str(args.out)},
                                     "rows": rows}, indent=1, default=str))
     return 0

@@ -289,3 +289,15 @@ def test_parts_inside_a_box_vote_for_it():
     apart = np.array([200.0, 0.0, 230.0, 30.0])
     assert votes_inside([whole, part, edge, apart]).tolist() == [1, 0, 0, 0]
     assert votes_inside([whole, part, edge, apart], inside=0.6).tolist() == [2, 0, 0, 0]
+
+
+def test_rank_scores_add_votes_and_regions_and_keep_ties_in_line2d_order():
+    """rank_scores on hand-computed cases: similarity + vote_weight x votes + region_weight x 100 x (region - 0.5), a
+    region not computed (NaN) adds nothing, and equal sums keep the incoming (LINE-2D) order."""
+    from pixie.cues.detect import rank_scores
+
+    rank, order = rank_scores([90.0, 80.0, 80.0, 70.0], [0, 2, 0, 0], 5.0, [0.5, 0.6, np.nan, 0.9], 0.5)
+    assert np.allclose(rank, [90.0, 80.0 + 10.0 + 5.0, 80.0, 70.0 + 20.0])
+    assert order.tolist() == [1, 0, 3, 2]  # 95, 90 (first of the tie), 90, 80
+    rank0, order0 = rank_scores([90.0, 80.0, 80.0], [0, 2, 0], 0.0, [0.9, 0.9, 0.9], 0.0)
+    assert np.allclose(rank0, [90.0, 80.0, 80.0]) and order0.tolist() == [0, 1, 2]

@@ -110,12 +110,16 @@ def votes_inside(boxes: list[np.ndarray], inside: float = 0.8) -> np.ndarray:
                      for i, a in enumerate(boxes)], int)
 
 
-def voted_order(scores: np.ndarray, boxes: list[np.ndarray], weight: float,
-                inside: float = 0.8) -> tuple[np.ndarray, np.ndarray]:
-    """The votes of each box (:func:`votes_inside`; none when ``weight`` is 0) and the order of
-    ``scores + weight * votes``, best first (stable: ties keep LINE-2D's order)."""
-    votes = votes_inside(boxes, inside) if weight > 0 else np.zeros(len(boxes), int)
-    return votes, np.argsort(-(np.asarray(scores, np.float64) + weight * votes), kind="stable")
+def rank_scores(scores: np.ndarray, votes: np.ndarray, vote_weight: float, regions: np.ndarray | None = None,
+                region_weight: float = 0.0) -> tuple[np.ndarray, np.ndarray]:
+    """What proposals are ordered by, and the order, best first (stable: ties keep LINE-2D's order):
+    ``scores + vote_weight * votes + region_weight * 100 * (regions - 0.5)``, a NaN region (not computed) adding
+    nothing."""
+    rank = np.asarray(scores, np.float64) + vote_weight * np.asarray(votes, np.float64)
+    if regions is not None and region_weight > 0:
+        reg = np.asarray(regions, np.float64)
+        rank = rank + np.where(np.isfinite(reg), region_weight * 100.0 * (reg - 0.5), 0.0)
+    return rank, np.argsort(-rank, kind="stable")
 
 
 def template_region(idx: np.ndarray, mask: np.ndarray, band_share: float = 0.15, n_bins: int = 512) -> float:
@@ -345,13 +349,9 @@ class TemplateDetector:
             votes[: len(pool)] = votes_inside([p.box_xyxy for p in pool], vote_inside)
         if region_weight > 0 and out:
             self._add_regions(image, out[: max(region_pool, 0)], region_band)
-        rank = []
-        for p, v in zip(out, votes):
-            p.votes = int(v)
-            reg = 0.0 if not np.isfinite(p.region) else region_weight * 100.0 * (p.region - 0.5)
-            p.rank_score = p.score + vote_weight * float(v) + reg
-            rank.append(p.rank_score)
-        order = np.argsort(-np.asarray(rank, np.float64), kind="stable")  # ties keep LINE-2D's order
+        rank, order = rank_scores([p.score for p in out], votes, vote_weight, [p.region for p in out], region_weight)
+        for p, v, r in zip(out, votes, rank):
+            p.votes, p.rank_score = int(v), float(r)
         return [out[i] for i in order[:top_k]]
 
     def _add_regions(self, image: np.ndarray, props: list[Proposal], band_share: float) -> None:
