@@ -128,6 +128,40 @@ def candidate_records(rec: dict, hyps: list, od, g) -> dict:
             "diameter": od.diameter, "symmetric": od.symmetric, "best_match": rec["best_match"], "cands": out}
 
 
+def merge(ds, objects, paths: list[Path], out: Path) -> int:
+    """One table over the targets of several ``--part`` runs (their ``--out`` JSONs): each variant's poses pooled and
+    scored again (ADD(-S)<0.1d, median rotation error, AR (MSSD/MSPD), per object)."""
+    runs = [json.loads(Path(p).read_text()) for p in paths]
+    names = [r["variant"] for r in runs[0]["rows"]]
+    bykey = {(t.scene_id, t.im_id, t.obj_id): t for t in ds.targets()}
+    rows = []
+    print("| variant | ADD(-S)<0.1d | med rot° | AR (MSSD/MSPD) | per object ADD(-S) % |")
+    print("|---|---|---|---|---|")
+    for name in names:
+        poses = [(tuple(tg), np.asarray(T)) for r in runs for row in r["rows"] if row["variant"] == name
+                 for tg, T in row["poses"]]
+        n = sum(row["n"] for r in runs for row in r["rows"] if row["variant"] == name)
+        hits, rots, per_obj = 0, [], {}
+        for tg, T in poses:
+            e = L.pose_errors(objects.eval_data(tg[2]), T, L.gt_instance(ds, bykey[tg]).T_cam_from_obj)
+            hits += bool(e["add_ok"])
+            rots.append(e["rot_err"])
+            per_obj.setdefault(str(tg[2]), []).append(bool(e["add_ok"]))
+        rots += [180.0] * (n - len(poses))  # targets without any hypothesis
+        ests = [PoseEstimate(tg[0], tg[1], tg[2], 1.0, T, 0.0) for tg, T in poses]
+        done = {tg for r in runs for row in r["rows"] if row["variant"] == name for tg in map(tuple, row.get("targets", []))}
+        tl = [bykey[tg] for tg in done] if done else [bykey[tg] for tg, _ in poses]
+        ar = evaluate(ds, ests, metrics=["mssd", "mspd"], targets=tl, n_points=2000).overall.get("AR_noVSD")
+        po = {o: round(100 * float(np.mean(v)), 1) for o, v in sorted(per_obj.items(), key=lambda kv: int(kv[0]))}
+        rows.append({"variant": name, "hits": hits, "n": n, "med_rot": float(np.median(rots)), "ar_mssd_mspd": ar,
+                     "per_object": po, "poses": [[list(tg), T.tolist()] for tg, T in poses]})
+        print(f"| {name} | {hits}/{n} ({100 * hits / n:.1f} %) | {np.median(rots):.1f} | {ar:.3f} | "
+              + ", ".join(f"{o}: {v}" for o, v in po.items()) + " |", flush=True)
+    out.parent.mkdir(parents=True, exist_ok=True)
+    out.write_text(json.dumps({"merged": [str(p) for p in paths], "rows": rows}, indent=1))
+    return 0
+
+
 def main(argv=None) -> int:
     ap = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
     ap.add_argument("--dataset", type=Path, default=L.DEFAULT_DATASET)
@@ -141,11 +175,15 @@ def main(argv=None) -> int:
     ap.add_argument("--ar", action="store_true", help="also score each variant's poses with AR (MSSD/MSPD)")
     ap.add_argument("--part", default="0/1", help="K/N: run the variants on the cached targets[K::N] only (stage 2 on"
                     " both cores, each with its own --out / --dump; the rows then cover that part)")
+    ap.add_argument("--merge", type=Path, nargs="+", default=None, metavar="STUDY_JSON",
+                    help="score the rows of several --part runs' --out files together (all their targets) and exit")
     ap.add_argument("--dump", type=Path, default=None, help="write every aligned-stage candidate of each variant (pose,"
                     " terms, errors against the GT) to this pickle, for offline selection studies (bench/lmo_rank.py)")
     args = ap.parse_args(argv)
     ds = L.BopDataset(args.dataset)
     objects = L.ObjectCache(ds)
+    if args.merge:
+        return merge(ds, objects, args.merge, args.out)
     targets = L.select_targets(ds, args.max_targets)
     base = PixieConfig.from_preset(args.preset).apply_overrides(["align.enabled=false"])
     key = hashlib.sha256(json.dumps([TAG, args.preset, stage1_digest(base), [(t.scene_id, t.im_id, t.obj_id) for t in targets]],
@@ -206,6 +244,7 @@ def main(argv=None) -> int:
             sc = evaluate(ds, ests_, metrics=["mssd", "mspd"], targets=[r["t"] for r in cached], n_points=2000)
             ar = sc.overall.get("AR_noVSD")
         rows.append({"variant": name, "overrides": overrides, "hits": hits, "n": n, "any": anyr,
+                     "targets": [list(r["target"]) for r in cached],
                      "med_rot": float(np.median(rots)), "s_per_target": secs / n, "per_target": per,
                      "per_object": {o: float(np.mean(v)) for o, v in sorted(per_obj.items(), key=lambda kv: int(kv[0]))},
                      "ar_mssd_mspd": ar,

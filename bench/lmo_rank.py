@@ -120,12 +120,54 @@ def forward(data, mu, sd, min_gain: int = 2) -> list[int]:
         cols, best = cols + [j], h
 
 
+def confidence_auc(paths: list[Path], variant: str) -> None:
+    """AUC (ADD(-S)-right against wrong) of the shipped calibrated confidence of each target's chosen candidate, per
+    dump and over all: its ``fit``, ``size`` (projected diameter / 100 px, clipped) and ``margin`` (its score minus
+    the best candidate's that is more than 10° away in rotation, as :meth:`PoseEstimator.distinct` would give
+    among the aligned candidates)."""
+    from common import DEFAULT_DATASET, BopDataset, ObjectCache
+    from pixie.config import PixieConfig
+    from pixie.cues.edge_align import calibrated_confidence, confidence_size
+    from lmo_select import auc
+
+    ac = PixieConfig.from_preset("default").align
+    ds = BopDataset(DEFAULT_DATASET)
+    objects = ObjectCache(ds)
+    allc, ally = [], []
+    for p in paths:
+        conf, ok = [], []
+        for t in pickle.loads(Path(p).read_bytes())["variants"][variant]:
+            cs = t["cands"]
+            if not cs:
+                conf.append(0.0)
+                ok.append(False)
+                continue
+            best = cs[0]
+            other = [c["score"] for c in cs[1:] if rotation_angle_deg(c["T"][:3, :3], best["T"][:3, :3]) > 10.0]
+            mesh = objects.mesh(t["target"][2])
+            K = ds.camera(t["target"][0], t["target"][1]).K
+            zc = (best["T"][:3, :3] @ mesh.center + best["T"][:3, 3])[2]
+            x = {"fit": best["terms"]["fit"], "margin": best["score"] - (max(other) if other else 0.0),
+                 "size": confidence_size(float(K[0, 0]) * mesh.diameter / max(float(zc), 1e-9))}
+            conf.append(calibrated_confidence(ac, x))
+            ok.append(bool(best["add_ok"]))
+        print(f"{p}: {len(ok)} targets, {sum(ok)} right, AUC of the shipped confidence "
+              f"{auc(np.array(conf), np.array(ok)):.3f}")
+        allc += conf
+        ally += ok
+    print(f"all: {len(ally)} targets, AUC {auc(np.array(allc), np.array(ally)):.3f}")
+
+
 def main(argv=None) -> int:
     ap = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
     ap.add_argument("dumps", type=Path, nargs="+")
     ap.add_argument("--variant", default="default")
     ap.add_argument("--out", type=Path, default=Path("out/bench/lmo_rank.json"))
+    ap.add_argument("--auc", action="store_true", help="only the AUC of the shipped confidence on the chosen poses")
     args = ap.parse_args(argv)
+    if args.auc:
+        confidence_auc(args.dumps, args.variant)
+        return 0
     halves = [load([args.dumps[0]], args.variant), load(args.dumps[1:], args.variant)]
     rows = []
     for fi, ri in ((0, 1), (1, 0)):

@@ -341,7 +341,16 @@ class AlignConfig(_Section):
     # 10° / 5 %, 11/12 with half the part covered; LM-O 96 targets: 31 vs 29 ADD(-S) hits, median rotation 11.7° vs 14.0°)
     schedule: list[float] = field(default_factory=lambda: [16.0, 8.0, 4.0, 2.0])
     iters: int = 6  # LM iterations per level (the model is re-rendered twice per level)
-    search: str = "normal"  # correspondences: along the model normal ('normal') or the nearest edge ('nearest')
+    # correspondences: 'region': silhouette points go where the colour foreground posterior (inside the current
+    # silhouette against a band around it) steps to background along the normal, snapped to a same-orientation edge
+    # within region_snap crop px (a point without a clear step keeps its edge: region_fallback), creases to the nearest
+    # edge along the normal; 'normal': every point to the nearest same-orientation edge along its normal; 'nearest':
+    # the nearest edge. LM-O dev, all 716 targets on the same starts: 247 ADD(-S) hits / AR 0.491 / median rotation
+    # 11.9° against 216 / 0.474 / 13.5° for 'normal', better on both halves (snap 2 and the fallback chosen on the
+    # 96-target basin; bench/RESULTS.md, session 23)
+    search: str = "region"
+    region_snap: float = 2.0
+    region_fallback: bool = True
     min_contrast: float = 0.0  # >0: silhouette points take only edges with this drop of the colour foreground posterior
     w_box: float = 1.0  # weight of each side of the given box (occlusion-aware: overshoot is robust) against the points
     # the box's weight is w_box * box_taper**k at the k-th Tukey scale. 0: the box sets depth at the coarsest scale only
@@ -354,6 +363,9 @@ class AlignConfig(_Section):
     w_matches: float = 0.0
     match_px: float = 10.0
     rot_prior: float = 0.0  # pull towards the start rotation (px² per point per rad²); 0 = free
+    # the photo's edge pixels: 'canny' (colour gradient, canny_low / canny_high) or 'edpf' (parameter-free Edge Drawing
+    # per colour channel, cv2.ximgproc); LM-O basin from 10° / 3 %, 96 targets: 0.49 both (bench/RESULTS.md, session 23)
+    edge_detector: str = "canny"
     canny_low: float = 5.0  # Canny hysteresis thresholds, grey levels per photo pixel
     canny_high: float = 12.0
     fit_px: float = 1.5  # aligned fit: a contour point is supported by an edge this close (crop px)
@@ -378,9 +390,10 @@ class AlignConfig(_Section):
 
 
 _SECTION_NAMES[AlignConfig] = "align"
-CHOICES["align.search"] = ("normal", "nearest")
+CHOICES["align.search"] = ("normal", "nearest", "region")
+CHOICES["align.edge_detector"] = ("canny", "edpf")
 CHOICES["align.confidence_terms"] = CONFIDENCE_TERMS
-RANGES.update({"align.min_contrast": (0, 1, True), "align.w_box": (0, None, True), "align.box_taper": (0, 1, True), "align.hypotheses": (0, 64, True), "align.flips": (0, 64, True), "align.object_px": (32, 2048, True),
+RANGES.update({"align.region_snap": (0, 100, True), "align.min_contrast": (0, 1, True), "align.w_box": (0, None, True), "align.box_taper": (0, 1, True), "align.hypotheses": (0, 64, True), "align.flips": (0, 64, True), "align.object_px": (32, 2048, True),
                "align.iters": (1, 100, True), "align.crease_weight": (0, 10, True), "align.rot_prior": (0, None, True),
                "align.canny_low": (0, None, True), "align.canny_high": (0, None, True), "align.fit_px": (0, 100, False),
                "align.w_fit": (0, None, True), "align.min_fit": (0, 1, True),

@@ -252,12 +252,11 @@ def _lm_step(K: np.ndarray, T: np.ndarray, mp: ModelPoints, pe: PhotoEdges, tau:
     Xc = mp.xyz @ R.T + t
     p = _project(K, Xc) + mp.offset
     ori = mp.ori + _roll_delta(R, mp.T_render[:3, :3])
-    cost, edge, inside = _matcher(pe, p, ori, tau, cfg, mp)
-    use = inside & (edge >= 0) & (cost < tau)
+    cost, tgt, dirs, inside = _matcher(pe, p, ori, tau, cfg, mp)
+    use = inside & (cost < tau)
     if use.sum() < 6:
         return None, float("inf"), int(use.sum())
-    e = pe.edge_xy[edge[use]]
-    g = pe.edge_dir[edge[use]]
+    e, g = tgt[use], dirs[use]
     X = Xc[use]
     r = np.einsum("ij,ij->i", g, p[use] - e)
     w = _tukey_weight(r, tau)
@@ -354,12 +353,68 @@ def _box_cost(K: np.ndarray, T: np.ndarray, cfg: dict, tau: float) -> float:
     return float(rho.sum())
 
 
-def _matcher(pe, p, ori, tau, cfg, mp=None):
-    if cfg["search"] == "normal":
+def _region_steps(fg: np.ndarray, xy: np.ndarray, outward: np.ndarray, reach: float,
+                  min_step: float = 0.2) -> tuple[np.ndarray, np.ndarray]:
+    """Where the foreground posterior ``fg`` steps from object to background along each point's outward normal.
+
+    Samples ``fg`` every crop px over ``[-reach, reach]`` along ``outward`` from ``xy`` and takes the boundary
+    ``d`` that maximises the likelihood of a step: foreground before ``d``, background after it
+    (``sum log fg`` inside + ``sum log (1 - fg)`` outside), the region-based contour of PWP3D / SRT3D found by a 1D
+    search instead of a density. Returns the offsets ``d`` (crop px, + = outwards) and whether each point has a
+    step: the mean posterior inside it exceeds the one outside by ``min_step`` (points off the crop have none).
+    """
+    S = fg.shape[0]
+    r = max(int(np.ceil(reach)), 1)
+    offs = np.arange(-r, r + 1, dtype=np.float64)  # sample offsets; boundaries lie between them
+    q = xy[:, None, :] + offs[None, :, None] * outward[:, None, :]
+    qx, qy = np.rint(q[..., 0]).astype(int), np.rint(q[..., 1]).astype(int)
+    ok = (qx >= 0) & (qx < S) & (qy >= 0) & (qy < S)
+    f = np.clip(fg[np.clip(qy, 0, S - 1), np.clip(qx, 0, S - 1)].astype(np.float64), 1e-3, 1 - 1e-3)
+    f = np.where(ok, f, 0.5)
+    lin, lout = np.log(f), np.log(1.0 - f)
+    # boundary after sample k (k = 0 .. n-2): inside = samples 0..k, outside = k+1..n-1
+    cin = np.cumsum(lin, axis=1)[:, :-1]
+    cout = (np.cumsum(lout[:, ::-1], axis=1)[:, ::-1])[:, 1:]
+    k = np.argmax(cin + cout, axis=1)
+    d = offs[k] + 0.5
+    n = len(offs)
+    idx = np.arange(n)[None, :]
+    inside = idx <= k[:, None]
+    m_in = (f * inside).sum(1) / np.maximum(inside.sum(1), 1)
+    m_out = (f * ~inside).sum(1) / np.maximum((~inside).sum(1), 1)
+    has = (m_in - m_out >= min_step) & ok.all(axis=1)
+    return d, has
+
+
+def _matcher(pe, p, ori, tau, cfg, mp=None) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
+    """Each model point's correspondence: (cost (1e4 where none), target position (N, 2) crop px, target direction
+    (N, 2) unit, along which the residual is measured, inside the allowed region). Edge search ('normal' or
+    'nearest'), or with 'region' the silhouette points' targets are the foreground posterior's step along their
+    outward normal (:func:`_region_steps`) and the creases keep their edges."""
+    if cfg["search"] in ("normal", "region"):
         fg = cfg.get("fg")
-        return _match_normal(pe, p, ori, tau, cfg["max_bin_gap"], fg, None if mp is None else mp.outward,
-                             cfg["min_contrast"])
-    return _match(pe, p, ori, cfg["max_bin_gap"], cfg["bin_penalty"])
+        cost, edge, inside = _match_normal(pe, p, ori, tau, cfg["max_bin_gap"], fg,
+                                           None if mp is None else mp.outward, cfg["min_contrast"])
+    else:
+        cost, edge, inside = _match(pe, p, ori, cfg["max_bin_gap"], cfg["bin_penalty"])
+    has = edge >= 0
+    tgt = np.where(has[:, None], pe.edge_xy[np.maximum(edge, 0)] if len(pe.edge_xy) else 0.0, np.nan)
+    dirs = np.where(has[:, None], pe.edge_dir[np.maximum(edge, 0)] if len(pe.edge_dir) else 0.0, np.nan)
+    if cfg["search"] == "region" and mp is not None and cfg.get("fg") is not None:
+        sil = mp.kind == SILHOUETTE
+        d, ok = _region_steps(cfg["fg"], p[sil], mp.outward[sil], tau)
+        n = mp.outward[sil]
+        t_reg = p[sil] + d[:, None] * n
+        # an edge within snap px of the region's step is the boundary, to sub-pixel; else the step itself
+        snap = cfg.get("region_snap", 0.0)
+        near = has[sil] & (np.abs(np.einsum("ij,ij->i", np.nan_to_num(tgt[sil]) - t_reg, n)) <= snap)
+        take = ok & ~near
+        if not cfg.get("region_fallback", False):  # a point without a step has no correspondence
+            cost[sil] = np.where(ok, cost[sil], 1e4)
+        cost[sil] = np.where(take, np.abs(d), cost[sil])
+        tgt[sil] = np.where(take[:, None], t_reg, tgt[sil])
+        dirs[sil] = np.where(take[:, None], n, dirs[sil])
+    return cost, tgt, dirs, inside
 
 
 def _rotvec(R: np.ndarray) -> np.ndarray:
@@ -371,11 +426,11 @@ def _robust_cost(K, T, mp, pe, tau, cfg) -> tuple[float, int]:
     R, t = T[:3, :3], T[:3, 3]
     p = _project(K, mp.xyz @ R.T + t) + mp.offset
     ori = mp.ori + _roll_delta(R, mp.T_render[:3, :3])
-    cost, edge, inside = _matcher(pe, p, ori, tau, cfg, mp)
-    use = inside & (edge >= 0)
+    cost, tgt, dirs, inside = _matcher(pe, p, ori, tau, cfg, mp)
+    use = inside & (cost < 1e4)
     if not use.any():
         return float("inf"), 0
-    e, g = pe.edge_xy[edge[use]], pe.edge_dir[edge[use]]
+    e, g = tgt[use], dirs[use]
     r = np.einsum("ij,ij->i", g, p[use] - e)
     r = np.where(cost[use] < tau, r, tau)  # unmatched count as truncated
     rho = _tukey_rho(r, tau)
@@ -399,7 +454,7 @@ def align(renderer: Renderer, pe: PhotoEdges, T0: np.ndarray, center: np.ndarray
           coarse_schedule: tuple[float, ...] = (8.0, 4.0), out_cost: float = 1.0,
           matches: tuple[np.ndarray, np.ndarray] | None = None, w_matches: float = 0.0,
           match_px: float = 10.0, face_parts: np.ndarray | None = None, drop_parts=(),
-          box_taper: float = 1.0) -> AlignResult:
+          box_taper: float = 1.0, region_snap: float = 0.0, region_fallback: bool = False) -> AlignResult:
     """Levenberg–Marquardt alignment of ``T0`` (photo camera) to the photo's edges, coarse to fine.
 
     Parameters
@@ -412,7 +467,13 @@ def align(renderer: Renderer, pe: PhotoEdges, T0: np.ndarray, center: np.ndarray
     iters : LM iterations per level
     rot_prior : pull towards the starting rotation: a deviation of 1 rad costs ``rot_prior`` px² per point
     dof : '6' (rotation and translation) or 't' (translation only)
-    search : 'nearest' (directional chamfer: nearest same-orientation edge) or 'normal' (along the model normal)
+    search : 'nearest' (directional chamfer: nearest same-orientation edge), 'normal' (along the model normal) or
+        'region' (silhouette points: where the colour foreground posterior of the current silhouette against a band
+        around it steps from object to background along the normal, :func:`_region_steps`; creases: 'normal')
+    region_snap : with ``search='region'``: a silhouette point whose same-orientation edge along the normal lies
+        within this many crop px of the region's step takes the edge (sub-pixel) instead; 0 = the step always
+    region_fallback : with ``search='region'``: a silhouette point without a clear step (the posterior inside it
+        exceeds the one outside by less than 0.2) keeps its edge; False = it has no correspondence
     min_contrast : with ``search='normal'``: silhouette points only take edges across which the foreground
         posterior (colours inside the current silhouette against a band around it) drops by this much
     w_box, hull : weight of each side of the given box against the contour points (its projection from the
@@ -434,7 +495,8 @@ def align(renderer: Renderer, pe: PhotoEdges, T0: np.ndarray, center: np.ndarray
            "min_contrast": float(min_contrast), "w_box": float(w_box) if hull is not None or w_box == 0 else 0.0,
            "hull": None if hull is None else np.asarray(hull, np.float64), "box_sides": pe.box_sides,
            "out_cost": float(out_cost), "R0": np.asarray(T0, np.float64)[:3, :3], "m_xyz": None, "m_uv": None,
-           "w_matches": float(w_matches), "match_px": float(match_px)}
+           "w_matches": float(w_matches), "match_px": float(match_px), "region_snap": float(region_snap),
+           "region_fallback": bool(region_fallback)}
     use_matches = matches is not None and w_matches > 0 and len(matches[0]) >= 6
     T = np.asarray(T0, np.float64).copy()
     history, n_it, converged = [], 0, False
@@ -458,7 +520,7 @@ def align(renderer: Renderer, pe: PhotoEdges, T0: np.ndarray, center: np.ndarray
                     mp = mp if len(mp.xyz) >= 6 else None
                 if mp is None:
                     break
-                if min_contrast > 0:
+                if min_contrast > 0 or search == "region":
                     cfg["fg"] = foreground_map(lv, mp.mask)
                 lam = 1e-3
                 cur, _ = _robust_cost(K, T, mp, lv, tau, cfg)
@@ -490,7 +552,8 @@ def align_kwargs(ac) -> dict:
     adds what belongs to the object and photo (``hull``, ``matches``, ``coarse``)."""
     return dict(schedule=tuple(ac.schedule), iters=ac.iters, crease_weight=ac.crease_weight, rot_prior=ac.rot_prior,
                 fit_px=ac.fit_px, search=ac.search, min_contrast=ac.min_contrast, w_box=ac.w_box,
-                box_taper=ac.box_taper, w_matches=ac.w_matches, match_px=ac.match_px)
+                box_taper=ac.box_taper, w_matches=ac.w_matches, match_px=ac.match_px, region_snap=ac.region_snap,
+                region_fallback=ac.region_fallback)
 
 
 # The confidence's ``size`` term: the object's projected diameter / 100 px, clipped to what LM-O dev covers (its 1st
@@ -523,8 +586,8 @@ def calibrated_confidence(ac, inputs: dict[str, float]) -> float:
 
 def photo_edges_kwargs(ac) -> dict:
     """The keywords of :func:`photo_edges` that ``config.align`` sets (the estimator, benches): the crop's object size
-    and the Canny thresholds."""
-    return dict(object_px=ac.object_px, canny_low=ac.canny_low, canny_high=ac.canny_high)
+    the edge detector and the Canny thresholds."""
+    return dict(object_px=ac.object_px, canny_low=ac.canny_low, canny_high=ac.canny_high, detector=ac.edge_detector)
 
 
 def edge_distances(pe: PhotoEdges, p: np.ndarray, ori: np.ndarray, max_bin_gap: int = 1,

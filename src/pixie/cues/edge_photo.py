@@ -18,7 +18,9 @@ from pixie.cues.region import colour_index
 from pixie.geometry.camera import crop_intrinsics
 from pixie.pipeline.query import QueryCrop, square_crop
 
-__all__ = ["PhotoEdges", "photo_edges"]
+__all__ = ["DETECTORS", "PhotoEdges", "photo_edges"]
+
+DETECTORS = ("canny", "edpf")
 
 
 @dataclass(kw_only=True)
@@ -96,7 +98,7 @@ def _subpixel(mag: np.ndarray, ys: np.ndarray, xs: np.ndarray, dx: np.ndarray, d
 def photo_edges(image: np.ndarray, K: np.ndarray, box_xyxy: np.ndarray, mask: np.ndarray | None = None,
                 object_px: float = 200.0, pad: float = 1.5, n_bins: int = 16, sigma: float = 1.0,
                 canny_low: float = 5.0, canny_high: float = 12.0, margin: float = 0.04,
-                margin_px: float = 3.0) -> PhotoEdges:
+                margin_px: float = 3.0, detector: str = "canny") -> PhotoEdges:
     """Edges of the photo around ``box_xyxy`` (x0, y0, x1, y1), resampled so the box's longer side is ``object_px``.
 
     Parameters
@@ -111,6 +113,10 @@ def photo_edges(image: np.ndarray, K: np.ndarray, box_xyxy: np.ndarray, mask: np
     canny_low, canny_high : hysteresis thresholds in grey levels per *photo* pixel (so the same edges are
         found whatever the resampling)
     margin, margin_px : the allowed region is the box grown by ``margin`` of its longer side + ``margin_px`` (photo px)
+    detector : which pixels are edges: 'canny' (hysteresis on the colour gradient, ``canny_low`` / ``canny_high``),
+        'edpf' (OpenCV's parameter-free Edge Drawing, ``cv2.ximgproc``, on each colour channel: edge chains kept only when
+        their gradient is unlikely under noise, Helmholtz principle; the union over the channels). Orientation and
+        sub-pixel position come from the colour gradient in both cases.
     """
     box = np.asarray(box_xyxy, np.float64)
     L = float(max(box[2] - box[0], box[3] - box[1], 1.0))
@@ -123,8 +129,13 @@ def photo_edges(image: np.ndarray, K: np.ndarray, box_xyxy: np.ndarray, mask: np
     gx, gy = _colour_gradients(crop.image, sigma)
     # Sobel of a ramp of 1 grey level per crop px is 8; per photo px that ramp is 1/s levels
     lo, hi = 8.0 * canny_low * s, 8.0 * canny_high * s
-    ex = cv2.Canny(np.clip(gx, -32767, 32767).astype(np.int16), np.clip(gy, -32767, 32767).astype(np.int16),
-                   lo, hi, L2gradient=True) > 0
+    if detector not in DETECTORS:
+        raise ValueError(f"photo_edges: detector must be one of {DETECTORS}, got {detector!r}")
+    if detector == "edpf":
+        ex = _edpf(crop.image)
+    else:
+        ex = cv2.Canny(np.clip(gx, -32767, 32767).astype(np.int16), np.clip(gy, -32767, 32767).astype(np.int16),
+                       lo, hi, L2gradient=True) > 0
     ex &= cv2.erode(valid.astype(np.uint8), np.ones((5, 5), np.uint8)) > 0
     ys, xs = np.nonzero(ex)
     mag = np.hypot(gx, gy)
@@ -167,6 +178,20 @@ def photo_edges(image: np.ndarray, K: np.ndarray, box_xyxy: np.ndarray, mask: np
                       edge_xy=exy, edge_dir=g, edge_bin=eb, allowed=allowed, box=box_c, valid=valid,
                       box_sides=np.concatenate([_to_crop(crop, box[:2] - 0.5), _to_crop(crop, box[2:] - 0.5)]),
                       colour=colour_index(crop.image))
+
+
+def _edpf(image: np.ndarray) -> np.ndarray:
+    """(H, W) bool edge pixels of parameter-free Edge Drawing (``cv2.ximgproc.createEdgeDrawing``, PFmode): the union
+    of its edges on each colour channel."""
+    ed = cv2.ximgproc.createEdgeDrawing()
+    p = cv2.ximgproc_EdgeDrawing_Params()
+    p.PFmode = True
+    ed.setParams(p)
+    out = np.zeros(image.shape[:2], bool)
+    for c in range(image.shape[2]):
+        ed.detectEdges(np.ascontiguousarray(image[..., c]))
+        out |= ed.getEdgeImage() > 0
+    return out
 
 
 def _to_crop(crop: QueryCrop, uv: np.ndarray) -> np.ndarray:
