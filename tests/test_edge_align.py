@@ -222,6 +222,18 @@ def test_region_steps_find_where_the_foreground_posterior_drops():
     assert not flat.any()
 
 
+@pytest.mark.parametrize("search", ["region", "normal", "nearest"])
+def test_alignment_on_a_crop_without_edges_returns_a_finite_pose(part, make_pose, search):
+    """A blank crop (no photo edge, a flat colour posterior): every search returns a finite pose, no exception (the
+    region search once failed on the empty edge list)."""
+    mesh, ren = part
+    T = make_pose(mesh, 3, distance_factor=3.5, offset_px=0, K=K)
+    img = np.full((480, 640, 3), 128, np.uint8)
+    box = projected_box(T, K, mesh.hull_vertices)
+    res = align(ren, photo_edges(img, K, box), T, hull=mesh.hull_vertices, **(ALIGN | {"search": search}))
+    assert np.isfinite(res.T_cam_from_obj).all()
+
+
 @pytest.mark.slow
 def test_edge_search_along_the_normal_still_converges_on_rendered_photos(part):
     """search='normal' (every point on the nearest same-orientation edge along its normal; the default until session

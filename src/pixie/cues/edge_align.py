@@ -398,8 +398,8 @@ def _matcher(pe, p, ori, tau, cfg, mp=None) -> tuple[np.ndarray, np.ndarray, np.
     else:
         cost, edge, inside = _match(pe, p, ori, cfg["max_bin_gap"], cfg["bin_penalty"])
     has = edge >= 0
-    tgt = np.where(has[:, None], pe.edge_xy[np.maximum(edge, 0)] if len(pe.edge_xy) else 0.0, np.nan)
-    dirs = np.where(has[:, None], pe.edge_dir[np.maximum(edge, 0)] if len(pe.edge_dir) else 0.0, np.nan)
+    tgt, dirs = np.full((len(p), 2), np.nan), np.full((len(p), 2), np.nan)
+    tgt[has], dirs[has] = pe.edge_xy[edge[has]], pe.edge_dir[edge[has]]
     if cfg["search"] == "region" and mp is not None and cfg.get("fg") is not None:
         sil = mp.kind == SILHOUETTE
         d, ok = _region_steps(cfg["fg"], p[sil], mp.outward[sil], tau)
