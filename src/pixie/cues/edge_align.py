@@ -4,8 +4,12 @@ Photo side (:mod:`pixie.cues.edge_photo`, once per query): sub-pixel colour-Cann
 16 orientation bins, one distance transform per bin. Correspondences (``search``): each model point takes
 either the nearest photo edge in a bin within ``max_bin_gap`` of its own orientation (``'nearest'``, the
 directional chamfer distance of Liu et al., CVPR 2010, each bin away costing ``bin_penalty`` px) or the nearest
-such edge *along its normal* (``'normal'``, RAPID-style 1D search; the default), optionally only across a drop
-of the colour foreground posterior (``min_contrast``).
+such edge *along its normal* (``'normal'``, RAPID-style 1D search), optionally only across a drop of the colour
+foreground posterior (``min_contrast``), or (``'region'``, the default since session 23) for silhouette points the
+offset along the normal where that posterior (colours inside the current silhouette against a band around it) most
+likely steps from object to background (:func:`_region_steps`, the region boundary of PWP3D / SRT3D), snapped to an
+edge within ``region_snap`` px, the edge kept where there is no clear step (``region_fallback``); creases as
+``'normal'``. Residuals are measured along the target's direction in every case.
 
 Model side: the hypothesis is rendered in the crop's own camera and its silhouette and crease points are kept
 with their 3D object points (:func:`pixie.references.templates.view_points`); it is re-rendered twice per truncation level
