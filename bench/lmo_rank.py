@@ -10,13 +10,16 @@ pose, source, the shape stage's and the aligned fit's terms, its ADD(-S) verdict
 half, the others the report half (run the study with ``--part 0/2`` and ``--part 1/2``: even and odd positions).
 
 Per candidate the features are the shipped ranking score (``fused + w_fit * fit``, always in the model), its terms,
-and two that describe the pool rather than the candidate: ``consensus`` (how many other candidates of the target lie within 5°
-and 2 % depth of it) and the flags of its source. The model is a conditional logit: the chosen candidate of a target
-is the one with the highest ``w · x``; ``w`` maximises the log-likelihood of choosing a right candidate on the
-targets that have one (L2 on standardised features). Rule for the features: forward selection on the fitting half
-alone from the shipped score, each step adding the feature that most raises the 5-fold cross-validated hits there (ties: the higher
-cross-validated log-likelihood), stopping when no feature adds 2 hits; then fitted on the whole fitting half and
-reported on the other half, beside the shipped score (``fused + w_fit * fit``), and the other way round (cross-fit).
+and some that describe the pool rather than the candidate: ``consensus`` (how many other candidates of the target lie
+within 5° and 2 % depth of it), the summed score of those, and the flags of its source. The model is a conditional
+logit: the chosen candidate of a target is the one with the highest ``w · x``; ``w`` maximises the log-likelihood of
+choosing a right candidate on the targets that have one (L2 on standardised features). Rule for the features: forward
+selection on the fitting half alone from the shipped score, each step adding the feature that most raises the 5-fold
+cross-validated hits there, stopping when no feature adds 2 hits; then fitted on the whole fitting half and reported
+on the other half beside the shipped score, and the other way round (cross-fit).
+
+``--auc``: only the AUC of the shipped calibrated confidence on each dump's chosen candidates (see
+:func:`confidence_auc`).
 """
 
 from __future__ import annotations
