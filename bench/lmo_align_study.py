@@ -128,9 +128,33 @@ def candidate_records(rec: dict, hyps: list, od, g) -> dict:
             "diameter": od.diameter, "symmetric": od.symmetric, "best_match": rec["best_match"], "cands": out}
 
 
+def score_poses(ds, objects, targets: list, poses: dict, ar: bool) -> dict:
+    """Scores of one variant's chosen poses ``poses`` ({(scene, image, object): T}) over ``targets`` (a target without a
+    pose is a miss at 180°): per target its ADD(-S)<0.1d verdict, the hits, the median rotation error, the share right
+    per object and, with ``ar``, AR (MSSD/MSPD, :func:`pixie.eval.evaluate`; None without)."""
+    per, rots, per_obj = [], [], {}
+    for t in targets:
+        T = poses.get((t.scene_id, t.im_id, t.obj_id))
+        ok, rot = False, 180.0
+        if T is not None:
+            e = L.pose_errors(objects.eval_data(t.obj_id), T, L.gt_instance(ds, t).T_cam_from_obj)
+            ok, rot = bool(e["add_ok"]), e["rot_err"]
+        per.append(ok)
+        rots.append(rot)
+        per_obj.setdefault(str(t.obj_id), []).append(ok)
+    score = None
+    if ar:
+        ests = [PoseEstimate(k[0], k[1], k[2], 1.0, T, 0.0) for k, T in poses.items()]
+        score = evaluate(ds, ests, metrics=["mssd", "mspd"], targets=targets, n_points=2000).overall.get("AR_noVSD")
+    return {"per_target": per, "hits": int(sum(per)), "med_rot": float(np.median(rots)),
+            "per_object": {o: float(np.mean(v)) for o, v in sorted(per_obj.items(), key=lambda kv: int(kv[0]))},
+            "ar": score}
+
+
 def merge(ds, objects, paths: list[Path], out: Path) -> int:
     """One table over the targets of several ``--part`` runs (their ``--out`` JSONs): each variant's poses pooled and
-    scored again (ADD(-S)<0.1d, median rotation error, AR (MSSD/MSPD), per object)."""
+    scored again (:func:`score_poses`; rows written before they listed their targets count the targets they have a
+    pose for)."""
     runs = [json.loads(Path(p).read_text()) for p in paths]
     names = [r["variant"] for r in runs[0]["rows"]]
     bykey = {(t.scene_id, t.im_id, t.obj_id): t for t in ds.targets()}
@@ -138,24 +162,15 @@ def merge(ds, objects, paths: list[Path], out: Path) -> int:
     print("| variant | ADD(-S)<0.1d | med rot° | AR (MSSD/MSPD) | per object ADD(-S) % |")
     print("|---|---|---|---|---|")
     for name in names:
-        poses = [(tuple(tg), np.asarray(T)) for r in runs for row in r["rows"] if row["variant"] == name
-                 for tg, T in row["poses"]]
-        n = sum(row["n"] for r in runs for row in r["rows"] if row["variant"] == name)
-        hits, rots, per_obj = 0, [], {}
-        for tg, T in poses:
-            e = L.pose_errors(objects.eval_data(tg[2]), T, L.gt_instance(ds, bykey[tg]).T_cam_from_obj)
-            hits += bool(e["add_ok"])
-            rots.append(e["rot_err"])
-            per_obj.setdefault(str(tg[2]), []).append(bool(e["add_ok"]))
-        rots += [180.0] * (n - len(poses))  # targets without any hypothesis
-        ests = [PoseEstimate(tg[0], tg[1], tg[2], 1.0, T, 0.0) for tg, T in poses]
-        done = {tg for r in runs for row in r["rows"] if row["variant"] == name for tg in map(tuple, row.get("targets", []))}
-        tl = [bykey[tg] for tg in done] if done else [bykey[tg] for tg, _ in poses]
-        ar = evaluate(ds, ests, metrics=["mssd", "mspd"], targets=tl, n_points=2000).overall.get("AR_noVSD")
-        po = {o: round(100 * float(np.mean(v)), 1) for o, v in sorted(per_obj.items(), key=lambda kv: int(kv[0]))}
-        rows.append({"variant": name, "hits": hits, "n": n, "med_rot": float(np.median(rots)), "ar_mssd_mspd": ar,
-                     "per_object": po, "poses": [[list(tg), T.tolist()] for tg, T in poses]})
-        print(f"| {name} | {hits}/{n} ({100 * hits / n:.1f} %) | {np.median(rots):.1f} | {ar:.3f} | "
+        mine = [row for r in runs for row in r["rows"] if row["variant"] == name]
+        poses = {tuple(tg): np.asarray(T) for row in mine for tg, T in row["poses"]}
+        keys = [tuple(tg) for row in mine for tg in row.get("targets", [])] or list(poses)
+        sc = score_poses(ds, objects, [bykey[k] for k in keys], poses, ar=True)
+        n = len(keys)
+        po = {o: round(100 * v, 1) for o, v in sc["per_object"].items()}
+        rows.append({"variant": name, "hits": sc["hits"], "n": n, "med_rot": sc["med_rot"], "ar_mssd_mspd": sc["ar"],
+                     "per_object": po, "poses": [[list(k), T.tolist()] for k, T in poses.items()]})
+        print(f"| {name} | {sc['hits']}/{n} ({100 * sc['hits'] / n:.1f} %) | {sc['med_rot']:.1f} | {sc['ar']:.3f} | "
               + ", ".join(f"{o}: {v}" for o, v in po.items()) + " |", flush=True)
     out.parent.mkdir(parents=True, exist_ok=True)
     out.write_text(json.dumps({"merged": [str(p) for p in paths], "rows": rows}, indent=1))
@@ -204,54 +219,34 @@ def main(argv=None) -> int:
     ests: dict[int, PoseEstimator] = {}
     dumps: dict[str, list] = {}
     for name, overrides in variants:
-        hits, anyr, rots, secs, per, poses, dumped = 0, 0, [], 0.0, [], [], []
+        anyr, secs, poses, dumped = 0, 0.0, {}, []
         cfg = PixieConfig.from_preset(args.preset).apply_overrides(["align.enabled=true"] + (overrides or []))
         for rec in cached:
-            sid, iid, oid = rec["target"]
-            od = objects.eval_data(oid)
-            g = L.gt_instance(ds, rec["t"])
             if not rec["hyps"]:  # no hypothesis at all: a miss in every variant
-                per.append(False)
-                rots.append(180.0)
                 continue
             if overrides is None:
-                best = rec["hyps"][0]
-                e = L.pose_errors(od, best.T_cam_from_obj, g.T_cam_from_obj)
-                hits += bool(e["add_ok"])
-                rots.append(e["rot_err"])
-                per.append(bool(e["add_ok"]))
-                poses.append((rec, best))
+                poses[tuple(rec["target"])] = rec["hyps"][0].T_cam_from_obj
                 continue
+            od = objects.eval_data(rec["target"][2])
+            g = L.gt_instance(ds, rec["t"])
             hyps, dt = align_cached(ds, objects, rec, cfg, base, ests)
             secs += dt
-            e = L.pose_errors(od, hyps[0].T_cam_from_obj, g.T_cam_from_obj)
-            poses.append((rec, hyps[0]))
-            hits += bool(e["add_ok"])
-            per.append(bool(e["add_ok"]))
-            rots.append(e["rot_err"])
+            poses[tuple(rec["target"])] = hyps[0].T_cam_from_obj
             anyr += any(L.pose_errors(od, h.T_cam_from_obj, g.T_cam_from_obj)["add_ok"]
                         for h in hyps if h.source in ("aligned", "flip"))
             if args.dump is not None:
                 dumped.append(candidate_records(rec, hyps, od, g))
         n = len(cached)
-        per_obj: dict[str, list[bool]] = {}
-        for rec, ok in zip(cached, per):
-            per_obj.setdefault(str(rec["target"][2]), []).append(ok)
-        ar = None
-        if args.ar:
-            ests_ = [PoseEstimate(r["target"][0], r["target"][1], r["target"][2], float(h.score), h.T_cam_from_obj,
-                                  r.get("seconds", 0.0)) for r, h in poses]
-            sc = evaluate(ds, ests_, metrics=["mssd", "mspd"], targets=[r["t"] for r in cached], n_points=2000)
-            ar = sc.overall.get("AR_noVSD")
+        sc = score_poses(ds, objects, [r["t"] for r in cached], poses, args.ar)
+        hits, ar = sc["hits"], sc["ar"]
         rows.append({"variant": name, "overrides": overrides, "hits": hits, "n": n, "any": anyr,
                      "targets": [list(r["target"]) for r in cached],
-                     "med_rot": float(np.median(rots)), "s_per_target": secs / n, "per_target": per,
-                     "per_object": {o: float(np.mean(v)) for o, v in sorted(per_obj.items(), key=lambda kv: int(kv[0]))},
-                     "ar_mssd_mspd": ar,
-                     "poses": [[r["target"], h.T_cam_from_obj.tolist()] for r, h in poses]})
+                     "med_rot": sc["med_rot"], "s_per_target": secs / n, "per_target": sc["per_target"],
+                     "per_object": sc["per_object"], "ar_mssd_mspd": ar,
+                     "poses": [[list(k), T.tolist()] for k, T in poses.items()]})
         if args.dump is not None:
             dumps[name] = dumped
-        print(f"| {name} | {hits}/{n} ({100 * hits / n:.1f} %) | {anyr} | {np.median(rots):.1f} | {secs / n:.2f} |"
+        print(f"| {name} | {hits}/{n} ({100 * hits / n:.1f} %) | {anyr} | {sc['med_rot']:.1f} | {secs / n:.2f} |"
               + ("" if ar is None else f" AR {ar:.3f}"), flush=True)
     args.out.parent.mkdir(parents=True, exist_ok=True)
     if args.dump is not None:

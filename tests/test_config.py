@@ -94,3 +94,12 @@ def test_detect_acceptance_terms_and_coefficients_must_agree():
         PixieConfig().apply_overrides(["detect.proposals=0"])
     ok = PixieConfig().apply_overrides(["detect.accept_terms=[fit,full_fit]", "detect.accept=[-3,2,4]"])
     assert ok.detect.accept == [-3.0, 2.0, 4.0] and PixieConfig().apply_overrides(["detect.accept=[]"]).detect.accept == []
+
+
+def test_edge_detector_choices_are_what_photo_edges_accepts():
+    """config cannot import the cues layer, so align.edge_detector's choices and photo_edges' DETECTORS live apart:
+    this keeps them equal (align.search's choices each run in tests/test_edge_align.py)."""
+    from pixie.config import CHOICES
+    from pixie.cues.edge_photo import DETECTORS
+
+    assert CHOICES["align.edge_detector"] == DETECTORS

@@ -6,7 +6,7 @@ import cv2
 import numpy as np
 import pytest
 
-from pixie.config import PixieConfig
+from pixie.config import CHOICES, PixieConfig
 from pixie.cues.edge_align import align, align_kwargs, edge_fit, flip_twins, photo_edges
 from pixie.geometry.camera import crop_intrinsics, make_K, project, rotation_angle_deg, transform_points
 from pixie.geometry.render import Renderer
@@ -222,7 +222,7 @@ def test_region_steps_find_where_the_foreground_posterior_drops():
     assert not flat.any()
 
 
-@pytest.mark.parametrize("search", ["region", "normal", "nearest"])
+@pytest.mark.parametrize("search", CHOICES["align.search"])
 def test_alignment_on_a_crop_without_edges_returns_a_finite_pose(part, make_pose, search):
     """A blank crop (no photo edge, a flat colour posterior): every search returns a finite pose, no exception (the
     region search once failed on the empty edge list)."""

@@ -410,10 +410,9 @@ def _matcher(pe, p, ori, tau, cfg, mp=None) -> tuple[np.ndarray, np.ndarray, np.
         n = mp.outward[sil]
         t_reg = p[sil] + d[:, None] * n
         # an edge within snap px of the region's step is the boundary, to sub-pixel; else the step itself
-        snap = cfg.get("region_snap", 0.0)
-        near = has[sil] & (np.abs(np.einsum("ij,ij->i", np.nan_to_num(tgt[sil]) - t_reg, n)) <= snap)
+        near = has[sil] & (np.abs(np.einsum("ij,ij->i", np.nan_to_num(tgt[sil]) - t_reg, n)) <= cfg["region_snap"])
         take = ok & ~near
-        if not cfg.get("region_fallback", False):  # a point without a step has no correspondence
+        if not cfg["region_fallback"]:  # a point without a step has no correspondence
             cost[sil] = np.where(ok, cost[sil], 1e4)
         cost[sil] = np.where(take, np.abs(d), cost[sil])
         tgt[sil] = np.where(take[:, None], t_reg, tgt[sil])
