@@ -103,3 +103,15 @@ def test_edge_detector_choices_are_what_photo_edges_accepts():
     from pixie.cues.edge_photo import DETECTORS
 
     assert CHOICES["align.edge_detector"] == DETECTORS
+
+
+def test_search_choices_are_what_align_accepts():
+    """The same for align.search and align()'s SEARCHES; align() itself refuses anything else."""
+    import numpy as np
+
+    from pixie.config import CHOICES
+    from pixie.cues.edge_align import SEARCHES, align
+
+    assert CHOICES["align.search"] == SEARCHES
+    with pytest.raises(ValueError, match="search must be one of"):
+        align(None, None, np.eye(4), search="nearets")

@@ -146,6 +146,22 @@ def test_alignment_from_the_true_pose_stays_and_fits(part, make_pose):
     assert edge_fit(ren, pe, far).share < res.fit.share - 0.3
 
 
+@pytest.mark.parametrize("rerender", [1, 2])
+def test_reported_fit_is_the_fit_of_the_final_pose_rendered_afresh(part, make_pose, rerender):
+    """align() renders only when the pose has moved and hands its last render to the final fit: that fit must be
+    the one of the returned pose rendered again (a stale render would give the start's or an earlier level's)."""
+    mesh, ren = part
+    T = make_pose(mesh, 11, distance_factor=3.5, offset_px=30, K=K)
+    img, box, _ = photo([ren], [T], 11)
+    pe = photo_edges(img, K, box)
+    T0 = turned(T, mesh.center, 6.0, 0.03, 2.0, np.random.default_rng(11))
+    res = align(ren, pe, T0, hull=mesh.hull_vertices, **dict(ALIGN, rerender=rerender))
+    assert rotation_angle_deg(res.T_cam_from_obj[:3, :3], T0[:3, :3]) > 1.0  # it moved
+    fresh = edge_fit(ren, pe, res.T_cam_from_obj, fit_px=ALIGN["fit_px"])
+    assert res.fit == fresh
+    assert edge_fit(ren, pe, T0, fit_px=ALIGN["fit_px"]).share < res.fit.share
+
+
 def test_alignment_with_every_part_dropped_returns_the_start(part, make_pose):
     """No model point left (every part dropped, as the part report's robust fit may do on a defective model): the
     start comes back unchanged with no cost recorded, not an exception (found on the defects benchmark, session 14)."""

@@ -340,7 +340,8 @@ class AlignConfig(_Section):
     # Tukey scales per level, crop px: 16 first widens the basin (rendered photos, box_taper 0: 12/12 within 1° / 1 % from
     # 10° / 5 %, 11/12 with half the part covered; LM-O 96 targets: 31 vs 29 ADD(-S) hits, median rotation 11.7° vs 14.0°)
     schedule: list[float] = field(default_factory=lambda: [16.0, 8.0, 4.0, 2.0])
-    iters: int = 6  # LM iterations per level (the model is re-rendered twice per level)
+    iters: int = 6  # LM iterations per level
+    rerender: int = 2  # renders of the model (its contour points, visibility, colour posterior) per level
     # correspondences: 'region': silhouette points go where the colour foreground posterior (inside the current
     # silhouette against a band around it) steps to background along the normal, snapped to a same-orientation edge
     # within region_snap crop px (a point without a clear step keeps its edge: region_fallback), creases to the nearest
@@ -394,7 +395,7 @@ CHOICES["align.search"] = ("normal", "nearest", "region")
 CHOICES["align.edge_detector"] = ("canny", "edpf")
 CHOICES["align.confidence_terms"] = CONFIDENCE_TERMS
 RANGES.update({"align.region_snap": (0, 100, True), "align.min_contrast": (0, 1, True), "align.w_box": (0, None, True), "align.box_taper": (0, 1, True), "align.hypotheses": (0, 64, True), "align.flips": (0, 64, True), "align.object_px": (32, 2048, True),
-               "align.iters": (1, 100, True), "align.crease_weight": (0, 10, True), "align.rot_prior": (0, None, True),
+               "align.iters": (1, 100, True), "align.rerender": (1, 100, True), "align.crease_weight": (0, 10, True), "align.rot_prior": (0, None, True),
                "align.canny_low": (0, None, True), "align.canny_high": (0, None, True), "align.fit_px": (0, 100, False),
                "align.w_fit": (0, None, True), "align.min_fit": (0, 1, True),
                "align.w_matches": (0, None, True), "align.match_px": (0, 100, False),

@@ -448,6 +448,9 @@ def _robust_cost(K, T, mp, pe, tau, cfg) -> tuple[float, int]:
     return float((np.sum(rho * w) + cfg["out_cost"] * n_out * tau ** 2 / 6) / len(use)) + prior, int(use.sum())
 
 
+SEARCHES = ("normal", "nearest", "region")  # align()'s correspondence searches (config: align.search)
+
+
 def align(renderer: Renderer, pe: PhotoEdges, T0: np.ndarray, center: np.ndarray | None = None,
           schedule: tuple[float, ...] = (8.0, 4.0, 2.0), iters: int = 6, n_points: int = 240,
           crease_weight: float = 0.5, crease_share: float = 0.3, max_bin_gap: int = 1, bin_penalty: float = 2.0,
@@ -492,6 +495,10 @@ def align(renderer: Renderer, pe: PhotoEdges, T0: np.ndarray, center: np.ndarray
     face_parts, drop_parts : the mesh's part index per triangle and parts whose points are left out (parts the
         photo does not support, e.g. a missing part: :func:`pixie.cues.parts.robust_part_fit`)
     """
+    if search not in SEARCHES:
+        raise ValueError(f"align: search must be one of {SEARCHES}, got {search!r}")
+    if int(rerender) < 1:
+        raise ValueError(f"align: rerender must be at least 1, got {rerender!r}")
     center = renderer.mesh.center if center is None else np.asarray(center, np.float64)
     cfg = {"max_bin_gap": int(max_bin_gap), "bin_penalty": float(bin_penalty), "crease_weight": float(crease_weight),
            "center": center, "rot_prior": float(rot_prior), "dof": str(dof), "search": str(search),
@@ -505,6 +512,7 @@ def align(renderer: Renderer, pe: PhotoEdges, T0: np.ndarray, center: np.ndarray
     history, n_it, converged = [], 0, False
     levels = ([(coarse, tuple(coarse_schedule))] if coarse is not None else []) + [(pe, tuple(schedule))]
     w_box0, k_scale = cfg["w_box"], 0
+    last = None  # (level, pose, model points) of the latest render
     for lv, sched in levels:
         cfg["box_sides"] = lv.box_sides
         K = lv.K
@@ -517,14 +525,19 @@ def align(renderer: Renderer, pe: PhotoEdges, T0: np.ndarray, center: np.ndarray
             k_scale += 1
             cur = float("nan")  # no cost at this scale if no model point is left (e.g. every part dropped)
             for _ in range(max(rerender, 1)):
-                mp = model_points(renderer, T, K, lv.size, n_points, crease_share)
-                if mp is not None and face_parts is not None and len(drop_parts):
-                    mp = mp.subset(~np.isin(np.asarray(face_parts)[mp.tri], np.asarray(list(drop_parts))))
-                    mp = mp if len(mp.xyz) >= 6 else None
-                if mp is None:
-                    break
-                if min_contrast > 0 or search == "region":
-                    cfg["fg"] = foreground_map(lv, mp.mask)
+                if last is None or last[0] is not lv or not np.array_equal(last[1], T):
+                    # a render (and its foreground map) depends on the pose and the level's camera only: the
+                    # pose has not moved since the last one (LM converged or refused every step) -> reuse it
+                    mp = model_points(renderer, T, K, lv.size, n_points, crease_share)
+                    if mp is not None and face_parts is not None and len(drop_parts):
+                        mp = mp.subset(~np.isin(np.asarray(face_parts)[mp.tri], np.asarray(list(drop_parts))))
+                        mp = mp if len(mp.xyz) >= 6 else None
+                    if mp is None:
+                        break
+                    if min_contrast > 0 or search == "region":
+                        cfg["fg"] = foreground_map(lv, mp.mask)
+                    last = (lv, T.copy(), mp)
+                mp = last[2]
                 lam = 1e-3
                 cur, _ = _robust_cost(K, T, mp, lv, tau, cfg)
                 for _ in range(max(1, iters // max(rerender, 1))):
@@ -544,7 +557,10 @@ def align(renderer: Renderer, pe: PhotoEdges, T0: np.ndarray, center: np.ndarray
                         if lam > 1e4:
                             break
             history.append(cur if np.isfinite(cur) else float("nan"))
-    fit = edge_fit(renderer, pe, T, n_points=n_points, fit_px=fit_px, max_bin_gap=max_bin_gap)
+    same = last is not None and last[0] is pe and np.array_equal(last[1], T) and not (face_parts is not None
+                                                                                   and len(drop_parts))
+    fit = edge_fit(renderer, pe, T, n_points=n_points, fit_px=fit_px, max_bin_gap=max_bin_gap,
+                   points=last[2] if same else None)
     return AlignResult(T_cam_from_obj=T, T_init=np.asarray(T0, np.float64), fit=fit, iterations=n_it,
                        converged=converged, history=history)
 
@@ -553,7 +569,8 @@ def align_kwargs(ac) -> dict:
     """The keywords of :func:`align` that ``config.align`` (:class:`pixie.config.AlignConfig`) sets: the one map from
     the config to the solver (the estimator, the part report's re-alignment, benches and tests use it). The caller
     adds what belongs to the object and photo (``hull``, ``matches``, ``coarse``)."""
-    return dict(schedule=tuple(ac.schedule), iters=ac.iters, crease_weight=ac.crease_weight, rot_prior=ac.rot_prior,
+    return dict(schedule=tuple(ac.schedule), iters=ac.iters, rerender=ac.rerender, crease_weight=ac.crease_weight,
+                rot_prior=ac.rot_prior,
                 fit_px=ac.fit_px, search=ac.search, min_contrast=ac.min_contrast, w_box=ac.w_box,
                 box_taper=ac.box_taper, w_matches=ac.w_matches, match_px=ac.match_px, region_snap=ac.region_snap,
                 region_fallback=ac.region_fallback)
@@ -606,9 +623,10 @@ def edge_distances(pe: PhotoEdges, p: np.ndarray, ori: np.ndarray, max_bin_gap: 
 
 
 def edge_fit(renderer: Renderer, pe: PhotoEdges, T: np.ndarray, n_points: int = 240, fit_px: float = 1.5,
-             max_bin_gap: int = 1, crease_share: float = 0.3) -> EdgeFit:
-    """The aligned fit of pose ``T``: see :class:`EdgeFit`."""
-    mp = model_points(renderer, T, pe.K, pe.size, n_points, crease_share)
+             max_bin_gap: int = 1, crease_share: float = 0.3, points: ModelPoints | None = None) -> EdgeFit:
+    """The aligned fit of pose ``T``: see :class:`EdgeFit`. ``points``: :func:`model_points` of ``T`` in ``pe``'s
+    camera with the same ``n_points`` / ``crease_share`` when the caller has them (not rendered again)."""
+    mp = model_points(renderer, T, pe.K, pe.size, n_points, crease_share) if points is None else points
     if mp is None:
         return EdgeFit(share=0.0, silhouette_share=0.0, visible=0.0, mean_dist=float("inf"), n_points=0)
     p = _project(pe.K, mp.xyz @ T[:3, :3].T + T[:3, 3]) + mp.offset
