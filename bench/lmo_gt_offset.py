@@ -22,7 +22,9 @@ from pathlib import Path
 
 import numpy as np
 
-import common as L  # noqa: E402  (bench/common.py: targets, object cache)
+import common as L  # noqa: E402  (bench/common.py: targets, object cache; puts src/ on the path)
+
+from pixie.geometry.camera import project, transform_points  # noqa: E402
 
 REPO = L.REPO
 NAMES = {1: "ape", 5: "can", 6: "cat", 8: "driller", 9: "duck", 10: "eggbox", 11: "glue", 12: "holepuncher"}
@@ -31,11 +33,8 @@ NAMES = {1: "ape", 5: "can", 6: "cat", 8: "driller", 9: "duck", 10: "eggbox", 11
 def centre_offset(K: np.ndarray, center: np.ndarray, T: np.ndarray, T_gt: np.ndarray) -> tuple[np.ndarray, float]:
     """Image offset (2,) in px of the object centre ``center`` (object frame) projected with ``T`` minus with
     ``T_gt``, and the relative depth difference of the centre, (z - z_gt) / z_gt."""
-    def proj(P):
-        X = P[:3, :3] @ center + P[:3, 3]
-        return (K @ X)[:2] / X[2], X[2]
-    (a, za), (b, zb) = proj(T), proj(T_gt)
-    return a - b, float((za - zb) / zb)
+    X, Xg = transform_points(T, center), transform_points(T_gt, center)
+    return project(K, X) - project(K, Xg), float((X[2] - Xg[2]) / Xg[2])
 
 
 def main(argv=None) -> int:
@@ -54,12 +53,11 @@ def main(argv=None) -> int:
     per: dict[int, list] = {}
     for tg, T in row["poses"]:
         t = bykey[tuple(tg)]
-        T = np.asarray(T, np.float64)
-        e = L.pose_errors(objects.eval_data(t.obj_id), T, L.gt_instance(ds, t).T_cam_from_obj)
+        T, T_gt = np.asarray(T, np.float64), L.gt_instance(ds, t).T_cam_from_obj
+        e = L.pose_errors(objects.eval_data(t.obj_id), T, T_gt)
         if e["rot_err"] > args.max_deg:
             continue
-        d, dz = centre_offset(ds.camera(t.scene_id, t.im_id).K, objects.mesh(t.obj_id).center, T,
-                              L.gt_instance(ds, t).T_cam_from_obj)
+        d, dz = centre_offset(ds.camera(t.scene_id, t.im_id).K, objects.mesh(t.obj_id).center, T, T_gt)
         per.setdefault(t.obj_id, []).append((d[0], d[1], dz, bool(e["add_ok"])))
     print(f"poses: {args.poses} row {row['variant']!r}; targets within {args.max_deg:g}° of the GT")
     print("| object | n | median du px | median dv px | median dz/z % | ADD(-S) hits |")

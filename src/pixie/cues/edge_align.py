@@ -12,8 +12,8 @@ edge within ``region_snap`` px, the edge kept where there is no clear step (``re
 ``'normal'``. Residuals are measured along the target's direction in every case.
 
 Model side: the hypothesis is rendered in the crop's own camera and its silhouette and crease points are kept
-with their 3D object points (:func:`pixie.references.templates.view_points`); it is re-rendered twice per truncation level
-(visibility changes). Silhouette points are moved half a render pixel outwards (the boundary pixel's centre
+with their 3D object points (:func:`pixie.references.templates.view_points`); it is re-rendered ``rerender`` times per
+truncation level (visibility changes) when the pose has moved since the last render. Silhouette points are moved half a render pixel outwards (the boundary pixel's centre
 lies inside the true outline by that much on average).
 
 Solver: Levenberg–Marquardt on se(3) (rotation about the object's centre, translation in the camera frame) on
@@ -499,6 +499,7 @@ def align(renderer: Renderer, pe: PhotoEdges, T0: np.ndarray, center: np.ndarray
         raise ValueError(f"align: search must be one of {SEARCHES}, got {search!r}")
     if int(rerender) < 1:
         raise ValueError(f"align: rerender must be at least 1, got {rerender!r}")
+    rerender = int(rerender)
     center = renderer.mesh.center if center is None else np.asarray(center, np.float64)
     cfg = {"max_bin_gap": int(max_bin_gap), "bin_penalty": float(bin_penalty), "crease_weight": float(crease_weight),
            "center": center, "rot_prior": float(rot_prior), "dof": str(dof), "search": str(search),
@@ -512,7 +513,7 @@ def align(renderer: Renderer, pe: PhotoEdges, T0: np.ndarray, center: np.ndarray
     history, n_it, converged = [], 0, False
     levels = ([(coarse, tuple(coarse_schedule))] if coarse is not None else []) + [(pe, tuple(schedule))]
     w_box0, k_scale = cfg["w_box"], 0
-    last = None  # (level, pose, model points) of the latest render
+    last = None  # (level, pose, its model points, those used: without dropped parts) of the latest render
     for lv, sched in levels:
         cfg["box_sides"] = lv.box_sides
         K = lv.K
@@ -524,11 +525,11 @@ def align(renderer: Renderer, pe: PhotoEdges, T0: np.ndarray, center: np.ndarray
             cfg["w_box"] = w_box0 * float(box_taper) ** k_scale
             k_scale += 1
             cur = float("nan")  # no cost at this scale if no model point is left (e.g. every part dropped)
-            for _ in range(max(rerender, 1)):
+            for _ in range(rerender):
                 if last is None or last[0] is not lv or not np.array_equal(last[1], T):
                     # a render (and its foreground map) depends on the pose and the level's camera only: the
                     # pose has not moved since the last one (LM converged or refused every step) -> reuse it
-                    mp = model_points(renderer, T, K, lv.size, n_points, crease_share)
+                    full = mp = model_points(renderer, T, K, lv.size, n_points, crease_share)
                     if mp is not None and face_parts is not None and len(drop_parts):
                         mp = mp.subset(~np.isin(np.asarray(face_parts)[mp.tri], np.asarray(list(drop_parts))))
                         mp = mp if len(mp.xyz) >= 6 else None
@@ -536,11 +537,11 @@ def align(renderer: Renderer, pe: PhotoEdges, T0: np.ndarray, center: np.ndarray
                         break
                     if min_contrast > 0 or search == "region":
                         cfg["fg"] = foreground_map(lv, mp.mask)
-                    last = (lv, T.copy(), mp)
-                mp = last[2]
+                    last = (lv, T.copy(), full, mp)
+                mp = last[3]
                 lam = 1e-3
                 cur, _ = _robust_cost(K, T, mp, lv, tau, cfg)
-                for _ in range(max(1, iters // max(rerender, 1))):
+                for _ in range(max(1, iters // rerender)):
                     Tn, _, n_used = _lm_step(K, T, mp, lv, tau, cfg, lam)
                     n_it += 1
                     if Tn is None:
@@ -557,8 +558,7 @@ def align(renderer: Renderer, pe: PhotoEdges, T0: np.ndarray, center: np.ndarray
                         if lam > 1e4:
                             break
             history.append(cur if np.isfinite(cur) else float("nan"))
-    same = last is not None and last[0] is pe and np.array_equal(last[1], T) and not (face_parts is not None
-                                                                                   and len(drop_parts))
+    same = last is not None and last[0] is pe and np.array_equal(last[1], T)  # the fit counts every part's points
     fit = edge_fit(renderer, pe, T, n_points=n_points, fit_px=fit_px, max_bin_gap=max_bin_gap,
                    points=last[2] if same else None)
     return AlignResult(T_cam_from_obj=T, T_init=np.asarray(T0, np.float64), fit=fit, iterations=n_it,

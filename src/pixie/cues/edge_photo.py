@@ -118,6 +118,8 @@ def photo_edges(image: np.ndarray, K: np.ndarray, box_xyxy: np.ndarray, mask: np
         their gradient is unlikely under noise, Helmholtz principle; the union over the channels). Orientation and
         sub-pixel position come from the colour gradient in both cases.
     """
+    if detector not in DETECTORS:
+        raise ValueError(f"photo_edges: detector must be one of {DETECTORS}, got {detector!r}")
     box = np.asarray(box_xyxy, np.float64)
     L = float(max(box[2] - box[0], box[3] - box[1], 1.0))
     size = int(round(object_px * pad))
@@ -129,8 +131,6 @@ def photo_edges(image: np.ndarray, K: np.ndarray, box_xyxy: np.ndarray, mask: np
     gx, gy = _colour_gradients(crop.image, sigma)
     # Sobel of a ramp of 1 grey level per crop px is 8; per photo px that ramp is 1/s levels
     lo, hi = 8.0 * canny_low * s, 8.0 * canny_high * s
-    if detector not in DETECTORS:
-        raise ValueError(f"photo_edges: detector must be one of {DETECTORS}, got {detector!r}")
     if detector == "edpf":
         ex = _edpf(crop.image)
     else:
