@@ -1,10 +1,12 @@
 """Contour-template retrieval on LM-O: how often does the shape stage's template search put a right rotation among
-its candidates, per placement variant (``config.shape.anchors`` / ``shape.scales``)?
+its candidates, per ``config.shape`` variant?
 
 Usage::
 
     OMP_NUM_THREADS=1 PYTHONPATH=src .venv/bin/python bench/lmo_template_recall.py --max-targets 716 \
-        --variant "base:" --variant "anchors:shape.anchors=[-1,0,1]" [--part K/N] [--out out/bench/tpl_recall.json]
+        --variant "base:" --variant "rw2:shape.region_weight=2" [--part K/N] [--out out/bench/tpl_recall.json]
+
+(Session 25 measured side-anchored placements, ``shape.anchors``, with it at commit 89a80fb; that option was not kept.)
 
 For every target (GT ``bbox_visib`` box) the query crop's response maps are built once and each variant's
 :meth:`pixie.cues.shape.ShapeCues.retrieve` returns its ``shape.candidates`` template poses (depth from the box, as the

@@ -39,9 +39,7 @@ CHOICES: dict[str, tuple[str, ...]] = {
     "pose.views": ("all", "canonical"),
 }
 # Lists of numbers that may be empty or negative, and allowed list lengths.
-SIGNED_LISTS = {"align.confidence", "shape.anchors"}
-# Lists whose every item must lie in [low, high] (a signed list named here must not be empty).
-ITEM_RANGES = {"shape.anchors": (-1.0, 1.0)}
+SIGNED_LISTS = {"align.confidence"}
 # What the calibrated confidence may be computed from (config.align.confidence_terms; pixie.pipeline.estimator).
 CONFIDENCE_TERMS = ("fit", "fit_silhouette", "fit_visible", "fit_dist", "edge", "region", "fused", "margin", "size")
 LIST_LENGTHS = {"align.confidence": tuple(range(0, len(CONFIDENCE_TERMS) + 2))}  # [] or intercept + a term each
@@ -161,10 +159,6 @@ def check_value(dotted: str, annotation: str, value: Any) -> Any:
             raise ConfigError(f"{dotted} expects a {'list of numbers' if signed else 'non-empty list of positive numbers'}")
         if dotted in LIST_LENGTHS and len(value) not in LIST_LENGTHS[dotted]:
             raise ConfigError(f"{dotted} expects {' or '.join(map(str, LIST_LENGTHS[dotted]))} numbers, got {len(value)}")
-        if dotted in ITEM_RANGES:
-            lo, hi = ITEM_RANGES[dotted]
-            if not value or not all(lo <= v <= hi for v in value):
-                raise ConfigError(f"{dotted} expects a non-empty list of numbers in [{lo:g}, {hi:g}], got {value!r}")
     return value
 
 
@@ -304,11 +298,6 @@ class ShapeConfig(_Section):
     region_k: int = 300  # best (view, roll) pairs by edges that get a region score before ranking
     region_weight: float = 1.0  # template ranking: edge + region_weight * (region - 0.5)
     candidates: int = 16  # best template poses (15° apart) added as hypotheses
-    # template placements (pixie.cues.edges.search): besides centred on the box (0), flush with its low / high side
-    # (-1 / +1) where the template overhangs it (an occluded object's visible box), at these multiples of the
-    # box-implied scale
-    anchors: list[float] = field(default_factory=lambda: [0.0])
-    scales: list[float] = field(default_factory=lambda: [1.0])
     verify_matcher: int = 8  # best distinct matcher hypotheses verified beside them
     # verification score = w_match * matcher score / best matcher score + w_edge * edge + w_region * (region - 0.5);
     # set by bench/lmo_fusion.py's rule (most ADD hits, then most rotations < 15°, then the smallest total weight)

@@ -202,8 +202,7 @@ class EdgeMatch:
 
 def search(tpl: ContourTemplates | TemplateBank, q: EdgeQuery, n_rolls: int = 36, crease_weight: float = 0.5,
            shift_px: float = 4.0, shift_steps: int = 1, scales: tuple[float, ...] = (1.0,),
-           views: np.ndarray | None = None, angles: np.ndarray | None = None,
-           anchors: tuple[float, ...] = (0.0,)) -> tuple[np.ndarray, dict]:
+           views: np.ndarray | None = None, angles: np.ndarray | None = None) -> tuple[np.ndarray, dict]:
     """Score every (view, roll) template against the query; returns scores (V, A) and the best placement per pair.
 
     Parameters
@@ -212,10 +211,6 @@ def search(tpl: ContourTemplates | TemplateBank, q: EdgeQuery, n_rolls: int = 36
         ``angles`` are those of the bank)
     shift_px, shift_steps : shift grid (2*steps+1)^2 with this step, crop px
     scales : multipliers of the box-implied scale
-    anchors : where a template whose placed box overhangs the query box (the longer side of an occluded object: the
-        box-implied scale fits one dimension, the other overhangs) sits along the overhang: 0 centred on the box,
-        -1 / +1 flush with its low / high side (an occluder cut the other side). A scale above 1 overhangs both
-        dimensions; an anchor then moves the template along both
 
     Returns
     -------
@@ -233,19 +228,14 @@ def search(tpl: ContourTemplates | TemplateBank, q: EdgeQuery, n_rolls: int = 36
     best_o = np.zeros((V * A, 2), np.float32)
     for sc in scales:
         s = (s0 * sc)[:, None]
-        overhang = np.maximum(s * bank.wh - q.box_wh[None, :].astype(np.float32), 0.0)  # (T, 2) crop px
-        for a in anchors:
-            d = (-0.5 * float(a)) * overhang  # the placed box's centre moves by this: flush with a side for |a| = 1
-            if a != 0 and not np.any(overhang > 0.5 * shift_px):
-                continue  # no template overhangs by more than the shift grid covers: the same as centred
-            P = q.centre.astype(np.float32) + d[:, None, :] + s[:, :, None] * bank.xy
-            sco = score_bank(q, P, bank.bins, bank.weights, shifts)
-            k = np.argmax(sco, axis=1)
-            val = sco[np.arange(V * A), k]
-            upd = val > best
-            best = np.where(upd, val, best)
-            best_s = np.where(upd, s[:, 0], best_s)
-            origin = q.centre + d + s * bank.origin  # where the principal point lands
-            best_o = np.where(upd[:, None], origin + shifts[k], best_o)
+        P = q.centre.astype(np.float32) + s[:, :, None] * bank.xy
+        sco = score_bank(q, P, bank.bins, bank.weights, shifts)
+        k = np.argmax(sco, axis=1)
+        val = sco[np.arange(V * A), k]
+        upd = val > best
+        best = np.where(upd, val, best)
+        best_s = np.where(upd, s[:, 0], best_s)
+        origin = q.centre + s * bank.origin  # where the principal point lands
+        best_o = np.where(upd[:, None], origin + shifts[k], best_o)
     return best.reshape(V, A), {"views": bank.views, "angles": bank.angles, "scale": best_s.reshape(V, A),
                                 "origin": best_o.reshape(V, A, 2)}

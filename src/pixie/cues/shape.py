@@ -65,13 +65,11 @@ class ShapeCues:
     band : region band width, fraction of the query box's longer side
     nms_deg : retrieved candidates are more than this apart in rotation (15: top-5 recall +4 points on 96 LM-O
         targets against one per view)
-    anchors, scales : template placements beside the box-centred one (:func:`pixie.cues.edges.search`): flush with
-        a side of the box where the template overhangs it (occlusion), and multipliers of the box-implied scale
     """
 
     def __init__(self, mesh: Mesh, templates: ContourTemplates, n_rolls: int = 36, crease_weight: float = 0.5,
                  query_kw: dict | None = None, region_k: int = 300, region_weight: float = 1.0, band: float = 0.15,
-                 nms_deg: float = 15.0, anchors: tuple[float, ...] = (0.0,), scales: tuple[float, ...] = (1.0,)):
+                 nms_deg: float = 15.0):
         self.mesh = mesh
         self.tpl = templates
         self.bank = template_bank(templates, n_rolls, crease_weight)
@@ -81,8 +79,6 @@ class ShapeCues:
         self.region_weight = float(region_weight)
         self.band = float(band)
         self.nms_deg = float(nms_deg)
-        self.anchors = tuple(float(a) for a in anchors)
-        self.scales = tuple(float(x) for x in scales)
         self._rot = templates.rotations(self.bank.angles)[self.bank.views]  # (V, A, 3, 3) template rotations
         self._renderer: Renderer | None = None
         # distance of each template camera to the object centre
@@ -115,7 +111,7 @@ class ShapeCues:
 
     def retrieve(self, q: EdgeQuery, K: np.ndarray, k: int = 24) -> list[ShapeCandidate]:
         """The ``k`` best templates by fused edge + region score, more than ``nms_deg`` apart, as photo poses."""
-        scores, info = search(self.bank, q, anchors=self.anchors, scales=self.scales)
+        scores, info = search(self.bank, q)
         flat = scores.ravel()
         top = np.argsort(-flat, kind="stable")[: max(self.region_k, k)]
         v_i, a_i = np.unravel_index(top, scores.shape)
@@ -200,5 +196,4 @@ def shape_cues(refs, cfg) -> ShapeCues:
     ensure_templates(refs, cfg, save=False)
     tpl = ContourTemplates.from_arrays(refs.templates)
     return ShapeCues(refs.mesh, tpl, n_rolls=cfg.rolls, crease_weight=cfg.crease_weight,
-                     query_kw={"min_mag": cfg.min_mag}, region_k=cfg.region_k, region_weight=cfg.region_weight,
-                     anchors=tuple(cfg.anchors), scales=tuple(cfg.scales))
+                     query_kw={"min_mag": cfg.min_mag}, region_k=cfg.region_k, region_weight=cfg.region_weight)
