@@ -37,7 +37,8 @@ import common  # noqa: F401,E402  (bench/common.py: puts src/ on the path)
 from pixie.geometry.camera import rotation_angle_deg  # noqa: E402
 
 BASE = ("score", "fit", "fit_silhouette", "fit_dist", "fit_visible", "fused", "edge", "silhouette", "crease", "region",
-        "match", "box_iou", "is_flip", "is_start", "iterations", "consensus", "consensus_score")
+        "match", "box_iou", "is_flip", "is_start", "iterations", "consensus", "consensus_score", "fit_region",
+        "fit_support")
 
 
 def features(t: dict) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
@@ -57,7 +58,8 @@ def features(t: dict) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
              "match": c["match_score"] / max(t["best_match"], 1e-9), "box_iou": c["box_iou"],
              "is_flip": float(c["source"] == "flip"), "is_start": float(c["source"] not in ("flip", "aligned")),
              "iterations": tm.get("align_iterations", 0.0), "consensus": float(len(cons)),
-             "consensus_score": float(sum(cs[j]["score"] for j in cons))}
+             "consensus_score": float(sum(cs[j]["score"] for j in cons)),
+             "fit_region": tm.get("fit_region", float("nan")), "fit_support": tm.get("fit_support", float("nan"))}
         X[i] = [0.0 if not np.isfinite(v[k]) else v[k] for k in BASE]
     y = np.array([bool(c["add_ok"]) for c in cs])
     s = np.array([c["score"] for c in cs])
@@ -161,16 +163,57 @@ def confidence_auc(paths: list[Path], variant: str) -> None:
     print(f"all: {len(ally)} targets, AUC {auc(np.array(allc), np.array(ally)):.3f}")
 
 
+def grid(paths: list[Path], variant: str, term: str, weights: list[float], out: Path) -> int:
+    """Hits of simple rankings per dump (half): the shipped score, score + w * ``term`` for each weight, and the
+    shipped score with ``term`` in place of the aligned fit (``fused + w_fit * term``, w_fit from the shipped score);
+    prints one row per ranking, per dump and in all. A candidate without the term counts it as 0."""
+    from pixie.config import PixieConfig
+
+    w_fit = PixieConfig.from_preset("default").align.w_fit
+    halves = []
+    for p in paths:
+        rows = []
+        for t in pickle.loads(Path(p).read_bytes())["variants"][variant]:
+            cs = t["cands"]
+            if not cs:
+                continue
+            x = np.array([c["terms"].get(term, 0.0) for c in cs])
+            rows.append((np.array([c["score"] for c in cs]), np.nan_to_num(x),
+                         np.array([c["terms"].get("fused", 0.0) for c in cs]), np.array([bool(c["add_ok"]) for c in cs])))
+        halves.append(rows)
+
+    def count(rows, f) -> int:
+        return int(sum(y[int(np.argmax(f(s, x, fu)))] for s, x, fu, y in rows))
+
+    rankings = [("shipped", lambda s, x, fu: s)] + [(f"score + {w:g} {term}", lambda s, x, fu, w=w: s + w * x)
+                                                   for w in weights]
+    rankings.append((f"fused + {w_fit:g} {term} (in place of fit)", lambda s, x, fu: fu + w_fit * x))
+    res = {}
+    print(f"| ranking | {' | '.join(p.name for p in paths)} | all |\n|---|{'---|' * (len(paths) + 1)}")
+    for name, f in rankings:
+        hs = [count(r, f) for r in halves]
+        res[name] = hs
+        print(f"| {name} | {' | '.join(map(str, hs))} | {sum(hs)} |")
+    out.parent.mkdir(parents=True, exist_ok=True)
+    out.write_text(json.dumps({"dumps": [str(p) for p in paths], "term": term, "hits": res}, indent=1))
+    return 0
+
+
 def main(argv=None) -> int:
     ap = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
     ap.add_argument("dumps", type=Path, nargs="+")
     ap.add_argument("--variant", default="default")
     ap.add_argument("--out", type=Path, default=Path("out/bench/lmo_rank.json"))
     ap.add_argument("--auc", action="store_true", help="only the AUC of the shipped confidence on the chosen poses")
+    ap.add_argument("--grid", metavar="TERM", help="instead of the logit: hits per half of score + w * TERM (w on "
+                    "--weights) and of fused + w_fit * TERM (TERM in place of the aligned fit)")
+    ap.add_argument("--weights", default="-1,-0.5,-0.25,0.25,0.5,1,1.5,2,3")
     args = ap.parse_args(argv)
     if args.auc:
         confidence_auc(args.dumps, args.variant)
         return 0
+    if args.grid:
+        return grid(args.dumps, args.variant, args.grid, [float(w) for w in args.weights.split(",")], args.out)
     halves = [load([args.dumps[0]], args.variant), load(args.dumps[1:], args.variant)]
     rows = []
     for fi, ri in ((0, 1), (1, 0)):

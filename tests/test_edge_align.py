@@ -146,6 +146,23 @@ def test_alignment_from_the_true_pose_stays_and_fits(part, make_pose):
     assert edge_fit(ren, pe, far).share < res.fit.share - 0.3
 
 
+def test_region_support_is_high_at_the_true_pose_and_drops_off_it(part, make_pose):
+    """The colour region steps where the true pose's silhouette lies (most silhouette points within fit_px), not
+    where a pose 8 % too far puts it; the support counts a point on an edge or on such a step, so it is at least
+    the edge fit."""
+    mesh, ren = part
+    for seed in (7, 8, 9):
+        T = make_pose(mesh, seed, distance_factor=3.5, offset_px=40, K=K)
+        img, box, _ = photo([ren], [T], seed)
+        pe = photo_edges(img, K, box)
+        far = T.copy()
+        far[:3, 3] *= 1.08
+        at, off = edge_fit(ren, pe, T, region=True), edge_fit(ren, pe, far, region=True)
+        assert at.region_share > 0.7 and off.region_share < at.region_share - 0.4
+        assert at.support_share >= at.share and off.support_share >= off.share
+        assert np.isnan(edge_fit(ren, pe, T).region_share)  # not asked: not computed
+
+
 @pytest.mark.parametrize("rerender", [1, 2])
 def test_reported_fit_is_the_fit_of_the_final_pose_rendered_afresh(part, make_pose, rerender):
     """align() renders only when the pose has moved and hands its last render to the final fit: that fit must be
@@ -157,8 +174,8 @@ def test_reported_fit_is_the_fit_of_the_final_pose_rendered_afresh(part, make_po
     T0 = turned(T, mesh.center, 6.0, 0.03, 2.0, np.random.default_rng(11))
     res = align(ren, pe, T0, hull=mesh.hull_vertices, **dict(ALIGN, rerender=rerender))
     assert rotation_angle_deg(res.T_cam_from_obj[:3, :3], T0[:3, :3]) > 1.0  # it moved
-    fresh = edge_fit(ren, pe, res.T_cam_from_obj, fit_px=ALIGN["fit_px"])
-    assert res.fit == fresh
+    fresh = edge_fit(ren, pe, res.T_cam_from_obj, fit_px=ALIGN["fit_px"], region=True)  # its colour model too
+    assert res.fit == fresh and np.isfinite(res.fit.region_share)
     assert edge_fit(ren, pe, T0, fit_px=ALIGN["fit_px"]).share < res.fit.share
 
 

@@ -94,3 +94,24 @@ def test_config_values_are_checked(proc_mesh, build_refs):
         with pytest.raises(ConfigError, match=message):  # refused when set, before any estimator exists
             bad.set(key, value)
     PoseEstimator(refs, cfg)  # the valid config builds
+
+
+@pytest.mark.slow
+def test_extra_search_aligns_every_start_twice_and_keeps_both(query_est, query_results):
+    """``align.extra_search``: each alignment job also runs with the second correspondence search; both poses join
+    the ranked pool (term ``extra_search`` 0 / 1) with their aligned fit and support (support >= edge fit)."""
+    import copy
+
+    _, _, res, img, bbox = query_results[0]
+    est = copy.copy(query_est)
+    est.cfg = copy.deepcopy(query_est.cfg)
+    est.cfg.align.extra_search = "normal"
+    q = est.prepare(img, K_Q, bbox)
+    corr = est.match(q)
+    q.background = background_similarity([c[2] for c in corr.values()])
+    hyps = est.shape_stage(q, est.select_views(q, est.solve(q, corr)), {})
+    out = est.align_stage(q, hyps)
+    aligned = [h for h in out if h.source in ("aligned", "flip")]
+    extra = [h for h in aligned if h.terms["extra_search"] == 1.0]
+    assert len(extra) == len(aligned) - len(extra) > 0
+    assert all(np.isfinite(h.terms["fit_support"]) and h.terms["fit_support"] >= h.terms["fit"] for h in aligned)

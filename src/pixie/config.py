@@ -350,6 +350,9 @@ class AlignConfig(_Section):
     # 11.9° against 216 / 0.474 / 13.5° for 'normal', better on both halves (snap 2 and the fallback chosen on the
     # 96-target basin; bench/RESULTS.md, session 23)
     search: str = "region"
+    # a second correspondence search ('none', or one of search's choices): every start is also aligned with it and
+    # both aligned poses join the pool (twice the alignments)
+    extra_search: str = "none"
     region_snap: float = 2.0
     region_fallback: bool = True
     min_contrast: float = 0.0  # >0: silhouette points take only edges with this drop of the colour foreground posterior
@@ -371,6 +374,9 @@ class AlignConfig(_Section):
     canny_high: float = 12.0
     fit_px: float = 1.5  # aligned fit: a contour point is supported by an edge this close (crop px)
     w_fit: float = 1.0  # ranking score = the shape stage's fused score + w_fit * aligned fit
+    # ... + w_support * the aligned support: the share of visible contour points on an edge or (silhouette points) on
+    # a step of the colour region within fit_px (EdgeFit.support_share: evidence that does not favour the edge search)
+    w_support: float = 0.0
     # calibrated confidence = logistic(c0 + c1 * term1 + ...) of the chosen pose over confidence_terms (CONFIDENCE_TERMS;
     # size = projected diameter / 100 px, clipped), fitted by bench/lmo_select.py on the even half of s14_full716: AUC
     # 0.806 on the odd half (bench/RESULTS.md "Session 14"); [] = the uncalibrated ratio
@@ -392,12 +398,13 @@ class AlignConfig(_Section):
 
 _SECTION_NAMES[AlignConfig] = "align"
 CHOICES["align.search"] = ("normal", "nearest", "region")
+CHOICES["align.extra_search"] = ("none",) + CHOICES["align.search"]
 CHOICES["align.edge_detector"] = ("canny", "edpf")
 CHOICES["align.confidence_terms"] = CONFIDENCE_TERMS
 RANGES.update({"align.region_snap": (0, 100, True), "align.min_contrast": (0, 1, True), "align.w_box": (0, None, True), "align.box_taper": (0, 1, True), "align.hypotheses": (0, 64, True), "align.flips": (0, 64, True), "align.object_px": (32, 2048, True),
                "align.iters": (1, 100, True), "align.rerender": (1, 100, True), "align.crease_weight": (0, 10, True), "align.rot_prior": (0, None, True),
                "align.canny_low": (0, None, True), "align.canny_high": (0, None, True), "align.fit_px": (0, 100, False),
-               "align.w_fit": (0, None, True), "align.min_fit": (0, 1, True),
+               "align.w_fit": (0, None, True), "align.w_support": (0, None, True), "align.min_fit": (0, 1, True),
                "align.w_matches": (0, None, True), "align.match_px": (0, 100, False),
                "align.prior_margin": (0, 4, True), "align.reset_fit": (0, 1, True),
                "align.reset_ratio": (0, 1, True)})

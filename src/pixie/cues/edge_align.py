@@ -65,6 +65,11 @@ class EdgeFit:
     visible : share of the model's contour points inside the allowed region (box + margin, mask)
     mean_dist : mean truncated directional chamfer distance of the visible points, px
     n_points : visible points
+    region_share : share of visible silhouette points where the colour foreground posterior (inside the silhouette
+        against a band around it) steps to background within ``fit_px`` along the normal (:func:`_region_steps`);
+        NaN when not computed (``edge_fit(region=False)``)
+    support_share : share of visible points with either support: a same-orientation edge within ``fit_px``, or (a
+        silhouette point) such a region step; NaN when not computed
     """
 
     share: float
@@ -72,10 +77,12 @@ class EdgeFit:
     visible: float
     mean_dist: float
     n_points: int
+    region_share: float = float("nan")
+    support_share: float = float("nan")
 
     def as_dict(self) -> dict[str, float]:
         return {"fit": self.share, "fit_silhouette": self.silhouette_share, "fit_visible": self.visible,
-                "fit_dist": self.mean_dist}
+                "fit_dist": self.mean_dist, "fit_region": self.region_share, "fit_support": self.support_share}
 
 
 @dataclass(kw_only=True)
@@ -559,8 +566,9 @@ def align(renderer: Renderer, pe: PhotoEdges, T0: np.ndarray, center: np.ndarray
                             break
             history.append(cur if np.isfinite(cur) else float("nan"))
     same = last is not None and last[0] is pe and np.array_equal(last[1], T)  # the fit counts every part's points
+    fg = cfg.get("fg") if same and (min_contrast > 0 or search == "region") else None
     fit = edge_fit(renderer, pe, T, n_points=n_points, fit_px=fit_px, max_bin_gap=max_bin_gap,
-                   points=last[2] if same else None)
+                   points=last[2] if same else None, region=True, fg=fg)
     return AlignResult(T_cam_from_obj=T, T_init=np.asarray(T0, np.float64), fit=fit, iterations=n_it,
                        converged=converged, history=history)
 
@@ -623,23 +631,35 @@ def edge_distances(pe: PhotoEdges, p: np.ndarray, ori: np.ndarray, max_bin_gap: 
 
 
 def edge_fit(renderer: Renderer, pe: PhotoEdges, T: np.ndarray, n_points: int = 240, fit_px: float = 1.5,
-             max_bin_gap: int = 1, crease_share: float = 0.3, points: ModelPoints | None = None) -> EdgeFit:
+             max_bin_gap: int = 1, crease_share: float = 0.3, points: ModelPoints | None = None,
+             region: bool = False, fg: np.ndarray | None = None) -> EdgeFit:
     """The aligned fit of pose ``T``: see :class:`EdgeFit`. ``points``: :func:`model_points` of ``T`` in ``pe``'s
-    camera with the same ``n_points`` / ``crease_share`` when the caller has them (not rendered again)."""
+    camera with the same ``n_points`` / ``crease_share`` when the caller has them (not rendered again). ``region``:
+    also the region and support shares, from ``fg`` (:func:`foreground_map` of those points' render) when given."""
     mp = model_points(renderer, T, pe.K, pe.size, n_points, crease_share) if points is None else points
     if mp is None:
-        return EdgeFit(share=0.0, silhouette_share=0.0, visible=0.0, mean_dist=float("inf"), n_points=0)
+        return EdgeFit(share=0.0, silhouette_share=0.0, visible=0.0, mean_dist=float("inf"), n_points=0,
+                       region_share=0.0 if region else float("nan"), support_share=0.0 if region else float("nan"))
     p = _project(pe.K, mp.xyz @ T[:3, :3].T + T[:3, 3]) + mp.offset
     d, inside = edge_distances(pe, p, mp.ori, max_bin_gap, fit_px)
     if not inside.any():
-        return EdgeFit(share=0.0, silhouette_share=0.0, visible=0.0, mean_dist=float("inf"), n_points=0)
+        return EdgeFit(share=0.0, silhouette_share=0.0, visible=0.0, mean_dist=float("inf"), n_points=0,
+                       region_share=0.0 if region else float("nan"), support_share=0.0 if region else float("nan"))
     hit = d <= fit_px
     sil = mp.kind == SILHOUETTE
     vis_sil = inside & sil
+    reg_share = sup_share = float("nan")
+    if region:
+        fg = foreground_map(pe, mp.mask) if fg is None else fg
+        step, has = _region_steps(fg, p[sil], mp.outward[sil], fit_px + 2.0)
+        reg = np.zeros(len(p), bool)
+        reg[sil] = has & (np.abs(step) <= fit_px)
+        reg_share = float(reg[vis_sil].mean()) if vis_sil.any() else 0.0
+        sup_share = float((hit | reg)[inside].mean())
     return EdgeFit(share=float(hit[inside].mean()),
                    silhouette_share=float(hit[vis_sil].mean()) if vis_sil.any() else 0.0,
                    visible=float(inside.mean()), mean_dist=float(np.minimum(d[inside], 10.0).mean()),
-                   n_points=int(inside.sum()))
+                   n_points=int(inside.sum()), region_share=reg_share, support_share=sup_share)
 
 
 # ------------------------------------------------------------------------------------------ pool helpers

@@ -626,9 +626,10 @@ class PoseEstimator:
         """Edge-based 6-DoF alignment (``config.align``, :mod:`pixie.cues.edge_align`) of the best distinct hypotheses and
         the flip twins of the best few, then selection on the aligned fit.
 
-        The aligned poses join the pool (source 'aligned'; a twin's source is 'flip'). The starts and the aligned
-        poses are ranked by ``terms['fused']`` (the shape stage's score, recomputed for the new poses) +
-        ``w_fit * terms['fit']``; every other hypothesis follows them in its previous order.
+        The aligned poses join the pool (source 'aligned'; a twin's source is 'flip'; with ``extra_search`` every job
+        is aligned by that search too, term ``extra_search`` 1). The starts and the aligned poses are ranked by
+        ``terms['fused']`` (the shape stage's score, recomputed for the new poses) + ``w_fit * terms['fit']`` +
+        ``w_support * terms['fit_support']``; every other hypothesis follows them in its previous order.
         """
         ac = self.cfg.align
         ren, pe, kw = self._align_setup(q)
@@ -636,23 +637,22 @@ class PoseEstimator:
         jobs = [(h, h.T_cam_from_obj, "aligned") for h in starts]
         for h in starts[: ac.flips]:
             jobs += [(h, T, "flip") for T in flip_twins(h.T_cam_from_obj, self.refs.mesh.center)]
+        searches = [ac.search] + ([ac.extra_search] if ac.extra_search not in ("none", ac.search) else [])
         new: list[Hypothesis] = []
-        for h, T0, src in jobs:
+        for (h, T0, src), search in [(j, s_) for s_ in searches for j in jobs]:
             sup = (h.support_uv, h.support_xyz) if src == "aligned" and h.support_uv is not None else None
-            res = align(ren, pe, T0, **kw, matches=sup)
+            res = align(ren, pe, T0, **(kw | {"search": search}), matches=sup)
             T = res.T_cam_from_obj
             ms = h.match_score if src == "aligned" else 0.0  # a twin has no matcher support of its own
             nh = Hypothesis(T_cam_from_obj=T, score=0.0, match_score=ms, n_inliers=h.n_inliers if src == "aligned" else 0,
                             n_matches=h.n_matches, view=h.view, roll=h.roll, rot_to_ref_deg=0.0,
                             box_iou=box_iou(projected_box(T, q.K, self.box_points), q.box), sim_sum=h.sim_sum,
                             sim_mean=h.sim_mean, source=src)
-            nh.terms = {"fit": res.fit.share, "fit_silhouette": res.fit.silhouette_share, "fit_visible": res.fit.visible,
-                        "fit_dist": res.fit.mean_dist, "align_iterations": float(res.iterations)}
+            nh.terms = res.fit.as_dict() | {"align_iterations": float(res.iterations),
+                                            "extra_search": float(search != ac.search)}
             new.append(nh)
         for h in starts:
-            f = edge_fit(ren, pe, h.T_cam_from_obj, fit_px=ac.fit_px)
-            h.terms.update({"fit": f.share, "fit_silhouette": f.silhouette_share, "fit_visible": f.visible,
-                            "fit_dist": f.mean_dist})
+            h.terms.update(edge_fit(ren, pe, h.T_cam_from_obj, fit_px=ac.fit_px, region=True).as_dict())
         cands = starts + new
         for h in cands:
             if self._shape is not None and q.edges is not None:
@@ -664,7 +664,7 @@ class PoseEstimator:
                 h.fused = h.score if h.source != "flip" else 0.0
             h.fit = h.terms["fit"]
             h.terms["fused"] = h.fused
-            h.score = h.fused + ac.w_fit * h.fit
+            h.score = h.fused + ac.w_fit * h.fit + ac.w_support * h.terms.get("fit_support", 0.0)
         cands = sorted(cands, key=lambda h: -h.score)
         floor = cands[-1].score if cands else 0.0
         rest = [h for h in hyps if all(h is not c for c in starts)]
