@@ -351,7 +351,8 @@ class AlignConfig(_Section):
     # 96-target basin; bench/RESULTS.md, session 23)
     search: str = "region"
     # a second correspondence search ('none', or one of search's choices): every start is also aligned with it and
-    # both aligned poses join the pool (twice the alignments)
+    # both aligned poses join the pool (twice the alignments). LM-O 716, 'normal' with rerender 1: a right aligned
+    # candidate for 383 targets (default 313) but 240 chosen (245); not the default (bench/RESULTS.md, session 25)
     extra_search: str = "none"
     region_snap: float = 2.0
     region_fallback: bool = True
@@ -376,6 +377,7 @@ class AlignConfig(_Section):
     w_fit: float = 1.0  # ranking score = the shape stage's fused score + w_fit * aligned fit
     # ... + w_support * the aligned support: the share of visible contour points on an edge or (silhouette points) on
     # a step of the colour region within fit_px (EdgeFit.support_share: evidence that does not favour the edge search)
+    # LM-O 716: no weight beats 0 on both halves, with or without extra_search (bench/RESULTS.md, session 25)
     w_support: float = 0.0
     # calibrated confidence = logistic(c0 + c1 * term1 + ...) of the chosen pose over confidence_terms (CONFIDENCE_TERMS;
     # size = projected diameter / 100 px, clipped), fitted by bench/lmo_select.py on the even half of s14_full716: AUC
