@@ -29,20 +29,9 @@ import common as L  # noqa: E402  (bench/common.py: targets, object cache, prese
 
 from pixie.app.runner import make_matcher  # noqa: E402
 from pixie.cues.shape import shape_cues  # noqa: E402
-from pixie.eval.pose_error import rotation_error_deg  # noqa: E402
-from pixie.geometry.camera import project  # noqa: E402
+from pixie.geometry.camera import project, transform_points  # noqa: E402
 from pixie.pipeline.query import check_bbox  # noqa: E402
 from pixie.pose.solve import depth_from_box  # noqa: E402
-
-RANKS = (1, 4, 16)
-
-
-def rot_err(od, T: np.ndarray, T_gt: np.ndarray) -> float:
-    """Rotation error (deg), the smallest over the object's symmetries."""
-    if od.symmetric and len(od.syms):
-        return min(rotation_error_deg(T, T_gt @ S) for S in od.syms)
-    return rotation_error_deg(T, T_gt)
-
 
 def table(rows: dict[str, list[dict]], near: float, occluded: float) -> str:
     out = [f"| variant | targets | right@1 | right@4 | right@all | occluded (<{occluded:g}) @4 / @all | "
@@ -94,7 +83,9 @@ def main(argv: list[str] | None = None) -> int:
         img = ds.load_rgb(t.scene_id, t.im_id)
         K = ds.camera(t.scene_id, t.im_id).K
         box = check_bbox(g.box_visib, img.shape[:2])
-        c_gt = project(K, (g.T_cam_from_obj[:3, :3] @ objects.mesh(t.obj_id).center + g.T_cam_from_obj[:3, 3])[None])[0]
+        mesh = objects.mesh(t.obj_id)
+        centre_px = lambda T: project(K, transform_points(T, mesh.center[None]))[0]  # noqa: E731
+        c_gt = centre_px(g.T_cam_from_obj)
         q = None
         for name, ov in variants:
             cfg = L.make_config(ov, a.preset)
@@ -106,14 +97,12 @@ def main(argv: list[str] | None = None) -> int:
             q = q or sc.query(img, box)
             cands = sc.retrieve(q, K, cfg.shape.candidates)
             sec = time.perf_counter() - t0
-            mesh = objects.mesh(t.obj_id)
             Ts = [depth_from_box(c.T_cam_from_obj, K, mesh.hull_vertices, box) for c in cands]
-            errs = [rot_err(od, T, g.T_cam_from_obj) for T in Ts]
+            errs = [L.pose_errors(od, T, g.T_cam_from_obj)["rot_err"] for T in Ts]  # the smallest over symmetries
             good = [j for j, e in enumerate(errs) if e < a.near]
             cpx = None
             if good:
-                T = Ts[good[0]]
-                cpx = float(np.linalg.norm(project(K, (T[:3, :3] @ mesh.center + T[:3, 3])[None])[0] - c_gt))
+                cpx = float(np.linalg.norm(centre_px(Ts[good[0]]) - c_gt))
             rows[name].append({"target": [t.scene_id, t.im_id, t.obj_id], "rank": good[0] if good else None,
                                "best_err": float(min(errs)) if errs else None, "visib": float(g.visib_fract or 0.0),
                                "centre_px": cpx, "seconds": sec})

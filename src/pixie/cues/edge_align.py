@@ -566,9 +566,8 @@ def align(renderer: Renderer, pe: PhotoEdges, T0: np.ndarray, center: np.ndarray
                             break
             history.append(cur if np.isfinite(cur) else float("nan"))
     same = last is not None and last[0] is pe and np.array_equal(last[1], T)  # the fit counts every part's points
-    fg = cfg.get("fg") if same and (min_contrast > 0 or search == "region") else None
     fit = edge_fit(renderer, pe, T, n_points=n_points, fit_px=fit_px, max_bin_gap=max_bin_gap,
-                   points=last[2] if same else None, region=True, fg=fg)
+                   points=last[2] if same else None, region=True, fg=cfg.get("fg") if same else None)
     return AlignResult(T_cam_from_obj=T, T_init=np.asarray(T0, np.float64), fit=fit, iterations=n_it,
                        converged=converged, history=history)
 
@@ -637,14 +636,15 @@ def edge_fit(renderer: Renderer, pe: PhotoEdges, T: np.ndarray, n_points: int = 
     camera with the same ``n_points`` / ``crease_share`` when the caller has them (not rendered again). ``region``:
     also the region and support shares, from ``fg`` (:func:`foreground_map` of those points' render) when given."""
     mp = model_points(renderer, T, pe.K, pe.size, n_points, crease_share) if points is None else points
+    unsupported = 0.0 if region else float("nan")  # the region shares of a pose with no visible point
+    none = EdgeFit(share=0.0, silhouette_share=0.0, visible=0.0, mean_dist=float("inf"), n_points=0,
+                   region_share=unsupported, support_share=unsupported)
     if mp is None:
-        return EdgeFit(share=0.0, silhouette_share=0.0, visible=0.0, mean_dist=float("inf"), n_points=0,
-                       region_share=0.0 if region else float("nan"), support_share=0.0 if region else float("nan"))
+        return none
     p = _project(pe.K, mp.xyz @ T[:3, :3].T + T[:3, 3]) + mp.offset
     d, inside = edge_distances(pe, p, mp.ori, max_bin_gap, fit_px)
     if not inside.any():
-        return EdgeFit(share=0.0, silhouette_share=0.0, visible=0.0, mean_dist=float("inf"), n_points=0,
-                       region_share=0.0 if region else float("nan"), support_share=0.0 if region else float("nan"))
+        return none
     hit = d <= fit_px
     sil = mp.kind == SILHOUETTE
     vis_sil = inside & sil

@@ -664,7 +664,7 @@ class PoseEstimator:
                 h.fused = h.score if h.source != "flip" else 0.0
             h.fit = h.terms["fit"]
             h.terms["fused"] = h.fused
-            h.score = h.fused + ac.w_fit * h.fit + ac.w_support * h.terms.get("fit_support", 0.0)
+            h.score = h.fused + ac.w_fit * h.fit + ac.w_support * h.terms["fit_support"]
         cands = sorted(cands, key=lambda h: -h.score)
         floor = cands[-1].score if cands else 0.0
         rest = [h for h in hyps if all(h is not c for c in starts)]
