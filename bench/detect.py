@@ -17,6 +17,12 @@ seconds per image of the whole search; ``--gt-box`` adds the same code's ADD(-S)
 (:meth:`TemplateDetector.pose`, :meth:`PoseEstimator.estimate_from_prior`) and re-ranked by the aligned fit; the table
 adds the recall of that order (the aligned pose's projected box, IoU >= 0.5 with the amodal box) and the JSON every
 proposal's terms.
+
+The table also gives each object's **AP** (IoU >= 0.5 with the amodal box): the best ``--top`` proposals of every
+target of that object pooled and ranked by the detector's rank score across photos, one GT box per target, the
+first proposal on it a true positive, every other a false positive (all-point interpolated precision, as PASCAL VOC
+2010+). Over all 716 LM-O targets the search takes hours on one core: ``--shard K/N`` runs ``targets[K::N]`` (one
+process per core, each with its own ``--out``), ``--merge OUT...`` prints the table over their rows.
 """
 
 from __future__ import annotations
@@ -46,6 +52,82 @@ def xyxy(b) -> np.ndarray:
     return np.r_[b[:2], b[:2] + b[2:]]
 
 
+def average_precision(rows: list[dict], top: int) -> float:
+    """AP (IoU >= 0.5 with the amodal box) of the best ``top`` proposals of ``rows`` (one object's targets, one GT box
+    each), pooled and ranked by rank score; all-point interpolation. nan without targets."""
+    dets = []
+    for i, r in enumerate(rows):
+        p = r["proposals"]
+        rank = p.get("rank_scores") or []
+        if len(rank) != len(p["scores"]) or any(v is None for v in rank):  # rows written before rank scores were kept
+            rank = p["scores"]
+        dets += [(float(sc), i, float(iou)) for sc, iou in list(zip(rank, p["ious"]))[:top]]
+    if not rows:
+        return float("nan")
+    dets.sort(key=lambda d: -d[0])
+    seen, tp = set(), []
+    for _, i, iou in dets:
+        hit = iou >= 0.5 and i not in seen
+        if hit:
+            seen.add(i)
+        tp.append(hit)
+    tp = np.asarray(tp, float)
+    if not len(tp):
+        return 0.0
+    ctp, cfp = np.cumsum(tp), np.cumsum(1.0 - tp)
+    recall = np.r_[0.0, ctp / len(rows), 1.0]
+    precision = np.r_[1.0, ctp / np.maximum(ctp + cfp, 1e-12), 0.0]
+    precision = np.maximum.accumulate(precision[::-1])[::-1]  # the envelope
+    return float(np.sum((recall[1:] - recall[:-1]) * precision[1:]))
+
+
+def table(rows: list[dict], top: int, verify: bool = False, gt_box: bool = False, rerank: int = 0) -> list[str]:
+    """The printed table: per object and all, recall of the best / top proposals (amodal and visible box), AP,
+    seconds per image, and the --verify / --gt-box / --rerank columns when the rows have them."""
+    per: dict[int, list[dict]] = {}
+    for r in rows:
+        per.setdefault(int(r["target"][2]), []).append(r)
+
+    def line(name, rs, ap_):
+        m = lambda k: np.mean([r[k] for r in rs])  # noqa: E731
+        s = (f"| {name} | {len(rs)} | {m('top1'):.2f} | {m('topk'):.2f} | {m('top1_visib'):.2f} | "
+             f"{m('topk_visib'):.2f} | {ap_:.2f} | {np.mean([r['seconds'] for r in rs]):.2f} |")
+        if verify:
+            s += f" {m('found'):.2f} | {m('found_box'):.2f} | {m('found_add'):.2f} | {m('seconds_find'):.1f} |"
+        if gt_box:
+            s += f" {m('gt_box_add'):.2f} |"
+        if rerank:
+            s += f" {m('any_of_n'):.2f} | {m('rerank_top1'):.2f} | {m('rerank_topk'):.2f} | {m('seconds_rerank'):.2f} |"
+        return s
+    head = (f"| object | n | best proposal (amodal box) | top {top} | best (visible box) | top {top} | AP (top {top}) "
+            f"| s/image |")
+    if verify:
+        head += " found | found, box IoU >= 0.5 | found, ADD(-S) < 0.1 d | s/image (whole search) |"
+    if gt_box:
+        head += " GT visible box: ADD(-S) < 0.1 d |"
+    if rerank:
+        head += (f" any of the {rerank} | re-ranked by aligned fit: best (aligned box) | top {top} | "
+                 f"s/image (alignment) |")
+    aps = {o: average_precision(per[o], top) for o in sorted(per)}
+    out = [head, "|---" * (head.count("|") - 1) + "|"]
+    out += [line(str(o), per[o], aps[o]) for o in sorted(per)]
+    out.append(line("all", rows, float(np.mean(list(aps.values()))) if aps else float("nan")) + "  (AP: mean over objects)")
+    return out
+
+
+def merge(paths: list[Path], out: Path) -> int:
+    """One table over the rows of several ``--shard`` runs (their ``--out`` JSONs), written to ``out``."""
+    runs = [json.loads(Path(p).read_text()) for p in paths]
+    a = runs[0]["args"]
+    rows = [r for run in runs for r in run["rows"]]
+    flags = dict(top=int(a["top"]), verify=a["verify"] == "True", gt_box=a["gt_box"] == "True", rerank=int(a["rerank"]))
+    for ln in table(rows, **flags):
+        print(ln)
+    out.parent.mkdir(parents=True, exist_ok=True)
+    out.write_text(json.dumps({"merged": [str(p) for p in paths], "args": a, "rows": rows}, indent=1))
+    return 0
+
+
 def main(argv=None) -> int:
     ap = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
     ap.add_argument("--dataset", type=Path, default=L.DEFAULT_DATASET)
@@ -71,7 +153,12 @@ def main(argv=None) -> int:
     ap.add_argument("--verify", action="store_true",
                     help="run find_objects (proposals, each estimated, the supported pose kept) and score its pose")
     ap.add_argument("--threshold", type=float, help="LINE-2D similarity threshold (0-100; default: config detect)")
+    ap.add_argument("--shard", default="0/1", help="K/N: run targets[K::N] only (one process per core)")
+    ap.add_argument("--merge", type=Path, nargs="+", default=None, metavar="OUT_JSON",
+                    help="print the table over several --shard runs' --out files (written to --out) and exit")
     args = ap.parse_args(argv)
+    if args.merge:
+        return merge(args.merge, args.out)
     ds = L.BopDataset(args.dataset)
     objects = L.ObjectCache(ds)
     cfg = PixieConfig.from_preset(args.preset).apply_overrides(args.set)
@@ -85,9 +172,11 @@ def main(argv=None) -> int:
     if args.exclude:  # leave out the targets a parameter was chosen on
         chosen = {(t.scene_id, t.im_id, t.obj_id) for t in L.select_targets(ds, args.exclude)}
         targets = [t for t in targets if (t.scene_id, t.im_id, t.obj_id) not in chosen]
+    k, n = (int(v) for v in args.shard.split("/"))
+    targets = targets[k::n]
     matcher = None
     ests: dict[int, PoseEstimator] = {}
-    rows, per = [], {}
+    rows = []
     dets: dict[int, TemplateDetector] = {}  # every object's, kept: targets come image by image
     det_kw = dict(distance_mm=dist, cache_dir=L.REPO / "out/bench/line2d")
 
@@ -156,6 +245,8 @@ def main(argv=None) -> int:
                               "box_aligned": pb.tolist(), **{k: float(v) for k, v in terms.items()}})
             dt_rerank = time.perf_counter() - t1
         ranked = {"ious": [round(float(v), 3) for v in amodal], "scores": [round(p.score, 2) for p in props],
+                  "rank_scores": [None if not np.isfinite(p.rank_score) else round(float(p.rank_score), 3)
+                                  for p in props],
                   "votes": [p.votes for p in props],
                   "regions": [None if not np.isfinite(p.region) else round(float(p.region), 4) for p in props],
                   "boxes": [[round(float(v), 1) for v in p.box_xyxy] for p in props]}  # every proposal, best first
@@ -179,7 +270,6 @@ def main(argv=None) -> int:
             r["gt_box_add"] = L.pose_errors(objects.eval_data(t.obj_id), res.T_cam_from_obj, g.T_cam_from_obj)["add_ok"]
             r["seconds_gt_box"] = time.perf_counter() - t1
         rows.append(r)
-        per.setdefault(t.obj_id, []).append(r)
         extra = ""
         if args.verify:
             extra = (f"; found {found.found} (box {verified['found_box']}, ADD {verified['found_add']}, "
@@ -189,30 +279,8 @@ def main(argv=None) -> int:
                       f"in the {args.rerank}: {r['any_of_n']} ({dt_rerank:.1f} s)")
         print(f"  {len(rows)}/{len(targets)} {t.scene_id}/{t.im_id} obj {t.obj_id}: best IoU {max(amodal, default=0):.2f} "
               f"(visible {max(visib, default=0):.2f}), {dt:.1f} s{extra}", flush=True)
-    def line(name, rs):
-        m = lambda k: np.mean([r[k] for r in rs])  # noqa: E731
-        s = (f"| {name} | {len(rs)} | {m('top1'):.2f} | {m('topk'):.2f} | {m('top1_visib'):.2f} | "
-             f"{m('topk_visib'):.2f} | {np.mean([r['seconds'] for r in rs]):.2f} |")
-        if args.verify:
-            s += f" {m('found'):.2f} | {m('found_box'):.2f} | {m('found_add'):.2f} | {m('seconds_find'):.1f} |"
-        if args.gt_box:
-            s += f" {m('gt_box_add'):.2f} |"
-        if args.rerank:
-            s += f" {m('any_of_n'):.2f} | {m('rerank_top1'):.2f} | {m('rerank_topk'):.2f} | {m('seconds_rerank'):.2f} |"
-        return s
-    head = f"| object | n | best proposal (amodal box) | top {args.top} | best (visible box) | top {args.top} | s/image |"
-    if args.verify:
-        head += " found | found, box IoU >= 0.5 | found, ADD(-S) < 0.1 d | s/image (whole search) |"
-    if args.gt_box:
-        head += " GT visible box: ADD(-S) < 0.1 d |"
-    if args.rerank:
-        head += (f" any of the {args.rerank} | re-ranked by aligned fit: best (aligned box) | top {args.top} | "
-                 f"s/image (alignment) |")
-    print(head)
-    print("|---" * (head.count("|") - 1) + "|")
-    for o in sorted(per):
-        print(line(str(o), per[o]))
-    print(line("all", rows))
+    for ln in table(rows, args.top, args.verify, args.gt_box, args.rerank):
+        print(ln)
     args.out.parent.mkdir(parents=True, exist_ok=True)
     args.out.write_text(json.dumps({"args": {k: str(v) for k, v in vars(args).items()}, "rows": rows}, indent=1))
     return 0

@@ -238,6 +238,21 @@ def test_alignment_with_half_the_part_covered(part):
     assert sum(r < 5.0 and dz < 0.03 for r, dz in errs) >= 9, errs
 
 
+@pytest.mark.slow
+def test_alignment_with_its_first_scales_on_a_coarse_crop_converges(part):
+    """align.coarse_px: the first two Tukey scales (16 and 8 px) run on a crop where the box spans 100 px instead of 200
+    (a quarter of the render's pixels), then 4 and 2 px on the full crop, as the estimator runs them."""
+    from pixie.cues.edge_align import coarse_kwargs
+
+    ac = PixieConfig().align
+    ac.coarse_px = 100.0
+    kw = coarse_kwargs(ac, None)
+    assert kw["coarse_schedule"] == (8.0, 4.0) and kw["schedule"] == (4.0, 2.0)
+    for plate, need in ((None, 10), (plate_renderer(), 9)):
+        errs = align_trials(part[0], part[1], ALIGN, n=12, plate=plate, coarse_ac=ac)
+        assert sum(r < 1.0 and dz < 0.01 for r, dz in errs) >= need, errs
+
+
 def test_region_steps_find_where_the_foreground_posterior_drops():
     """_region_steps on a hand-made posterior: object (0.9) left of x = 40.5, background (0.1) right of it; points
     looking outwards (+x) from x = 35 and 44 find the boundary 5.5 px out / 3.5 px in; a flat posterior has no step,

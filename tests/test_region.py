@@ -14,6 +14,26 @@ K = make_K(600.0, 600.0, 159.5, 119.5)
 H, W = 240, 320
 
 
+def test_band_is_the_ring_of_a_whole_image_elliptic_dilation():
+    """band() dilates only around the mask; it must equal the dilation of the whole image (masks at the border,
+    several blobs, empty, widths from 0 to past the image)."""
+    rng = np.random.default_rng(3)
+    for trial in range(60):
+        h, w = (int(v) for v in rng.integers(6, 90, 2))
+        m = np.zeros((h, w), bool)
+        for _ in range(int(rng.integers(0, 4))):
+            x0, y0 = int(rng.integers(-5, w)), int(rng.integers(-5, h))
+            m[max(y0, 0):y0 + int(rng.integers(1, 30)), max(x0, 0):x0 + int(rng.integers(1, 30))] = True
+        width = int(rng.integers(0, 40))
+        valid = rng.random((h, w)) > 0.2 if trial % 2 else None
+        k = 2 * max(width, 1) + 1
+        ref = (cv2.dilate(m.astype(np.uint8), cv2.getStructuringElement(cv2.MORPH_ELLIPSE, (k, k))) > 0) & ~m
+        if valid is not None:
+            ref &= valid
+        assert np.array_equal(band(m, width, valid), ref), trial
+        assert not band(m, width, valid)[m].any()
+
+
 def test_separation_is_one_for_the_true_region_and_half_for_a_random_one():
     rng = np.random.default_rng(0)
     img = np.zeros((100, 100, 3), np.uint8)

@@ -337,6 +337,13 @@ class AlignConfig(_Section):
     hypotheses: int = 4  # best distinct hypotheses aligned
     flips: int = 1  # ... and the 180° flip twins (about the camera's x and y axes) of this many of them
     object_px: float = 200.0  # the box's longer side in the alignment crop, px
+    # > 0: the first coarse_levels Tukey scales of schedule run on a second crop where the box spans coarse_px (the
+    # scales converted to its px); its renders have (coarse_px / object_px)^2 of the pixels. 0: every scale on one crop.
+    # LM-O 716 on the same starts, coarse_px 100: 233 ADD(-S) hits / AR 0.494 / median rotation 11.7° against 245 / 0.490
+    # / 12.0°, align stage 1.35 vs 1.94 s per target (16 targets alone); it loses more than 1 % of the hits, so it is not
+    # the default (bench/RESULTS.md, session 26)
+    coarse_px: float = 0.0
+    coarse_levels: int = 2
     # Tukey scales per level, crop px: 16 first widens the basin (rendered photos, box_taper 0: 12/12 within 1° / 1 % from
     # 10° / 5 %, 11/12 with half the part covered; LM-O 96 targets: 31 vs 29 ADD(-S) hits, median rotation 11.7° vs 14.0°)
     schedule: list[float] = field(default_factory=lambda: [16.0, 8.0, 4.0, 2.0])
@@ -404,6 +411,7 @@ CHOICES["align.extra_search"] = ("none",) + CHOICES["align.search"]
 CHOICES["align.edge_detector"] = ("canny", "edpf")
 CHOICES["align.confidence_terms"] = CONFIDENCE_TERMS
 RANGES.update({"align.region_snap": (0, 100, True), "align.min_contrast": (0, 1, True), "align.w_box": (0, None, True), "align.box_taper": (0, 1, True), "align.hypotheses": (0, 64, True), "align.flips": (0, 64, True), "align.object_px": (32, 2048, True),
+               "align.coarse_px": (0, 2048, True), "align.coarse_levels": (0, 16, True),
                "align.iters": (1, 100, True), "align.rerender": (1, 100, True), "align.crease_weight": (0, 10, True), "align.rot_prior": (0, None, True),
                "align.canny_low": (0, None, True), "align.canny_high": (0, None, True), "align.fit_px": (0, 100, False),
                "align.w_fit": (0, None, True), "align.w_support": (0, None, True), "align.min_fit": (0, 1, True),

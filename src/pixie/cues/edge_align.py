@@ -50,7 +50,7 @@ from pixie.geometry.render import Renderer
 from pixie.geometry.rotations import rodrigues
 from pixie.references.templates import CREASE, SILHOUETTE, view_points
 
-__all__ = ["PhotoEdges", "AlignResult", "EdgeFit", "photo_edges", "model_points", "align", "align_kwargs", "photo_edges_kwargs", "calibrated_confidence", "confidence_size", "edge_fit",
+__all__ = ["PhotoEdges", "AlignResult", "EdgeFit", "photo_edges", "model_points", "align", "align_kwargs", "coarse_kwargs", "photo_edges_kwargs", "calibrated_confidence", "confidence_size", "edge_fit",
            "edge_distances", "flip_twins"]
 
 
@@ -581,6 +581,16 @@ def align_kwargs(ac) -> dict:
                 fit_px=ac.fit_px, search=ac.search, min_contrast=ac.min_contrast, w_box=ac.w_box,
                 box_taper=ac.box_taper, w_matches=ac.w_matches, match_px=ac.match_px, region_snap=ac.region_snap,
                 region_fallback=ac.region_fallback)
+
+
+def coarse_kwargs(ac, coarse: PhotoEdges) -> dict:
+    """The keywords of :func:`align` that run the first ``ac.coarse_levels`` Tukey scales of ``ac.schedule`` on
+    ``coarse`` (:func:`photo_edges` of the same photo and box with ``object_px=ac.coarse_px``), their scales converted
+    to its px; at least the last scale stays on the fine crop (the final fit is measured there)."""
+    n = min(int(ac.coarse_levels), len(ac.schedule) - 1)
+    f = float(ac.coarse_px) / float(ac.object_px)
+    return {"coarse": coarse, "coarse_schedule": tuple(float(s) * f for s in ac.schedule[:n]),
+            "schedule": tuple(float(s) for s in ac.schedule[n:])}
 
 
 # The confidence's ``size`` term: the object's projected diameter / 100 px, clipped to what LM-O dev covers (its 1st

@@ -68,8 +68,8 @@ from pixie.references.set import ReferenceSet, add_features
 from pixie.cues.refine import aligned_correspondences, render_in_crop
 from pixie.geometry.collide import part_solids
 from pixie.geometry.render import Renderer
-from pixie.cues.edge_align import (align, align_kwargs, calibrated_confidence, confidence_size, edge_fit, flip_twins,
-                                   photo_edges, photo_edges_kwargs)
+from pixie.cues.edge_align import (align, align_kwargs, calibrated_confidence, coarse_kwargs, confidence_size, edge_fit,
+                                   flip_twins, photo_edges, photo_edges_kwargs)
 from pixie.cues.edges import EdgeQuery
 from pixie.cues.parts import (complement_renderers, judge_parts, part_renderers, part_support, report_kwargs,
                               robust_part_fit)
@@ -126,6 +126,7 @@ class Query:
     edges: EdgeQuery | None = None  # the shape stage's edge query (config.shape), set by shape_stage
     best_match: float = 0.0  # best matcher score before shape verification (its scale), set by shape_stage
     photo_edges: object = None  # the alignment stage's PhotoEdges (config.align), set by align_stage
+    photo_edges_coarse: object = None  # ... and those of its coarse crop (align.coarse_px > 0)
     box_given: np.ndarray | None = None  # the box (x, y, w, h) as given, before clipping (None: from the mask)
 
 
@@ -615,12 +616,19 @@ class PoseEstimator:
     def _align_setup(self, q: Query, photo: bool = True) -> tuple[Renderer, object, dict]:
         """What the edge alignment of query ``q`` needs (``config.align``): the renderer, the photo's edges (also
         kept as ``q.photo_edges``; made again unless ``photo`` is false and they exist) and the keywords of
-        :func:`pixie.cues.edge_align.align`."""
+        :func:`pixie.cues.edge_align.align` (with ``align.coarse_px``, the coarse crop's edges, ``q.photo_edges_coarse``,
+        and the scales that run on them)."""
         ac = self.cfg.align
         ren = self.object_renderer()
         if photo or q.photo_edges is None:
             q.photo_edges = photo_edges(q.image, q.K, q.box, q.mask, **photo_edges_kwargs(ac))
-        return ren, q.photo_edges, align_kwargs(ac) | {"hull": self.box_points}
+        kw = align_kwargs(ac) | {"hull": self.box_points}
+        if ac.coarse_px > 0 and ac.coarse_levels > 0 and len(ac.schedule) > 1:
+            if photo or q.photo_edges_coarse is None:
+                q.photo_edges_coarse = photo_edges(q.image, q.K, q.box, q.mask,
+                                                   **(photo_edges_kwargs(ac) | {"object_px": ac.coarse_px}))
+            kw |= coarse_kwargs(ac, q.photo_edges_coarse)
+        return ren, q.photo_edges, kw
 
     def align_stage(self, q: Query, hyps: list[Hypothesis]) -> list[Hypothesis]:
         """Edge-based 6-DoF alignment (``config.align``, :mod:`pixie.cues.edge_align`) of the best distinct hypotheses and

@@ -12,7 +12,7 @@ import cv2
 import numpy as np
 
 from pixie.config import PixieConfig, RefsConfig
-from pixie.cues.edge_align import align, photo_edges
+from pixie.cues.edge_align import align, coarse_kwargs, photo_edges
 from pixie.geometry.camera import look_at, make_K, make_T, rotation_angle_deg
 from pixie.geometry.mesh import from_arrays
 from pixie.geometry.render import Renderer
@@ -172,10 +172,12 @@ def plate_renderer() -> Renderer:
 
 
 def align_trials(mesh, renderer: Renderer, align_kw: dict, n: int = 12, plate: Renderer | None = None,
-                 deg: float = 10.0, dz: float = 0.05, shift_px: float = 3.0) -> list[tuple[float, float]]:
+                 deg: float = 10.0, dz: float = 0.05, shift_px: float = 3.0,
+                 coarse_ac=None) -> list[tuple[float, float]]:
     """Edge alignment from a turned start on ``n`` seeded photos of ``mesh`` (3.5 diameters away, up to 60 px off
-    centre); with ``plate`` a plate 60 mm in front of the part, shifted sideways to cover about half of it.
-    Returns (rotation error in degrees, relative depth error) per trial."""
+    centre); with ``plate`` a plate 60 mm in front of the part, shifted sideways to cover about half of it; with
+    ``coarse_ac`` (a ``config.align`` whose ``coarse_px`` > 0) the first scales run on a coarse crop as the estimator
+    runs them. Returns (rotation error in degrees, relative depth error) per trial."""
     out = []
     for seed in range(n):
         T = facing_pose(mesh, np.random.default_rng(100 + seed), 3.5, 60.0, K_ALIGN)
@@ -188,6 +190,9 @@ def align_trials(mesh, renderer: Renderer, align_kw: dict, n: int = 12, plate: R
             img, box, _ = clutter_photo([renderer, plate], [T, make_T(np.eye(3), c + [side * 105.0, 0.0, -60.0])],
                                         seed)
         T0 = turned_pose(T, K_ALIGN, mesh.center, deg, dz, shift_px, rng)
-        Ta = align(renderer, photo_edges(img, K_ALIGN, box), T0, hull=mesh.hull_vertices, **align_kw).T_cam_from_obj
+        kw = dict(align_kw)
+        if coarse_ac is not None and coarse_ac.coarse_px > 0:
+            kw |= coarse_kwargs(coarse_ac, photo_edges(img, K_ALIGN, box, object_px=coarse_ac.coarse_px))
+        Ta = align(renderer, photo_edges(img, K_ALIGN, box), T0, hull=mesh.hull_vertices, **kw).T_cam_from_obj
         out.append((rotation_angle_deg(Ta[:3, :3], T[:3, :3]), abs(Ta[2, 3] - T[2, 3]) / T[2, 3]))
     return out
