@@ -55,6 +55,8 @@ def xyxy(b) -> np.ndarray:
 def average_precision(rows: list[dict], top: int) -> float:
     """AP (IoU >= 0.5 with the amodal box) of the best ``top`` proposals of ``rows`` (one object's targets, one GT box
     each), pooled and ranked by rank score; all-point interpolation. nan without targets."""
+    if not rows:
+        return float("nan")
     dets = []
     for i, r in enumerate(rows):
         p = r["proposals"]
@@ -62,8 +64,6 @@ def average_precision(rows: list[dict], top: int) -> float:
         if len(rank) != len(p["scores"]) or any(v is None for v in rank):  # rows written before rank scores were kept
             rank = p["scores"]
         dets += [(float(sc), i, float(iou)) for sc, iou in list(zip(rank, p["ious"]))[:top]]
-    if not rows:
-        return float("nan")
     dets.sort(key=lambda d: -d[0])
     seen, tp = set(), []
     for _, i, iou in dets:

@@ -50,7 +50,7 @@ from pixie.geometry.render import Renderer
 from pixie.geometry.rotations import rodrigues
 from pixie.references.templates import CREASE, SILHOUETTE, view_points
 
-__all__ = ["PhotoEdges", "AlignResult", "EdgeFit", "photo_edges", "model_points", "align", "align_kwargs", "coarse_kwargs", "photo_edges_kwargs", "calibrated_confidence", "confidence_size", "edge_fit",
+__all__ = ["PhotoEdges", "AlignResult", "EdgeFit", "photo_edges", "model_points", "align", "align_kwargs", "coarse_kwargs", "coarse_levels", "photo_edges_kwargs", "calibrated_confidence", "confidence_size", "edge_fit",
            "edge_distances", "flip_twins"]
 
 
@@ -583,11 +583,17 @@ def align_kwargs(ac) -> dict:
                 region_fallback=ac.region_fallback)
 
 
+def coarse_levels(ac) -> int:
+    """How many of ``ac.schedule``'s Tukey scales run on the coarse crop (``config.align``): 0 when ``coarse_px`` is 0;
+    at most all but the last (the final fit is measured on the fine crop)."""
+    return min(int(ac.coarse_levels), len(ac.schedule) - 1) if ac.coarse_px > 0 else 0
+
+
 def coarse_kwargs(ac, coarse: PhotoEdges) -> dict:
-    """The keywords of :func:`align` that run the first ``ac.coarse_levels`` Tukey scales of ``ac.schedule`` on
+    """The keywords of :func:`align` that run the first :func:`coarse_levels` Tukey scales of ``ac.schedule`` on
     ``coarse`` (:func:`photo_edges` of the same photo and box with ``object_px=ac.coarse_px``), their scales converted
-    to its px; at least the last scale stays on the fine crop (the final fit is measured there)."""
-    n = min(int(ac.coarse_levels), len(ac.schedule) - 1)
+    to its px."""
+    n = coarse_levels(ac)
     f = float(ac.coarse_px) / float(ac.object_px)
     return {"coarse": coarse, "coarse_schedule": tuple(float(s) * f for s in ac.schedule[:n]),
             "schedule": tuple(float(s) for s in ac.schedule[n:])}

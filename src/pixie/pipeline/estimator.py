@@ -68,8 +68,8 @@ from pixie.references.set import ReferenceSet, add_features
 from pixie.cues.refine import aligned_correspondences, render_in_crop
 from pixie.geometry.collide import part_solids
 from pixie.geometry.render import Renderer
-from pixie.cues.edge_align import (align, align_kwargs, calibrated_confidence, coarse_kwargs, confidence_size, edge_fit,
-                                   flip_twins, photo_edges, photo_edges_kwargs)
+from pixie.cues.edge_align import (align, align_kwargs, calibrated_confidence, coarse_kwargs, coarse_levels,
+                                   confidence_size, edge_fit, flip_twins, photo_edges, photo_edges_kwargs)
 from pixie.cues.edges import EdgeQuery
 from pixie.cues.parts import (complement_renderers, judge_parts, part_renderers, part_support, report_kwargs,
                               robust_part_fit)
@@ -623,7 +623,7 @@ class PoseEstimator:
         if photo or q.photo_edges is None:
             q.photo_edges = photo_edges(q.image, q.K, q.box, q.mask, **photo_edges_kwargs(ac))
         kw = align_kwargs(ac) | {"hull": self.box_points}
-        if ac.coarse_px > 0 and ac.coarse_levels > 0 and len(ac.schedule) > 1:
+        if coarse_levels(ac):
             if photo or q.photo_edges_coarse is None:
                 q.photo_edges_coarse = photo_edges(q.image, q.K, q.box, q.mask,
                                                    **(photo_edges_kwargs(ac) | {"object_px": ac.coarse_px}))

@@ -12,7 +12,7 @@ import cv2
 import numpy as np
 
 from pixie.config import PixieConfig, RefsConfig
-from pixie.cues.edge_align import align, coarse_kwargs, photo_edges
+from pixie.cues.edge_align import align, coarse_kwargs, coarse_levels, photo_edges
 from pixie.geometry.camera import look_at, make_K, make_T, rotation_angle_deg
 from pixie.geometry.mesh import from_arrays
 from pixie.geometry.render import Renderer
@@ -191,7 +191,7 @@ def align_trials(mesh, renderer: Renderer, align_kw: dict, n: int = 12, plate: R
                                         seed)
         T0 = turned_pose(T, K_ALIGN, mesh.center, deg, dz, shift_px, rng)
         kw = dict(align_kw)
-        if coarse_ac is not None and coarse_ac.coarse_px > 0:
+        if coarse_ac is not None and coarse_levels(coarse_ac):
             kw |= coarse_kwargs(coarse_ac, photo_edges(img, K_ALIGN, box, object_px=coarse_ac.coarse_px))
         Ta = align(renderer, photo_edges(img, K_ALIGN, box), T0, hull=mesh.hull_vertices, **kw).T_cam_from_obj
         out.append((rotation_angle_deg(Ta[:3, :3], T[:3, :3]), abs(Ta[2, 3] - T[2, 3]) / T[2, 3]))
