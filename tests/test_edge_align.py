@@ -7,7 +7,7 @@ import numpy as np
 import pytest
 
 from pixie.config import CHOICES, PixieConfig
-from pixie.cues.edge_align import align, align_kwargs, edge_fit, flip_twins, photo_edges
+from pixie.cues.edge_align import align, align_kwargs, edge_fit, flip_twins, photo_edges, silhouette_outset
 from pixie.geometry.camera import crop_intrinsics, make_K, project, rotation_angle_deg, transform_points
 from pixie.geometry.render import Renderer
 from pixie.pipeline.query import check_bbox
@@ -55,6 +55,36 @@ def test_photo_edges_find_a_square_boundary_to_subpixel():
     # box sides in crop px map back to the photo's pixel edges
     back = pe.crop.to_original(pe.box_sides.reshape(2, 2))
     np.testing.assert_allclose(back, [[99.5, 59.5], [179.5, 139.5]], atol=1e-9)
+
+
+def _srgb(lin: np.ndarray) -> np.ndarray:
+    """8-bit sRGB of linear light in [0, 1] (the camera's encoding)."""
+    e = np.where(lin <= 0.0031308, 12.92 * lin, 1.055 * np.power(lin, 1 / 2.4) - 0.055)
+    return np.clip(np.rint(e * 255), 0, 255).astype(np.uint8)
+
+
+@pytest.mark.parametrize("bright_inside", [True, False])
+def test_linear_light_edges_find_a_blurred_step_that_the_encoded_gradient_moves_to_its_dark_side(bright_inside):
+    """A camera blurs light (linear), then encodes it (sRGB): the encoded gradient of a bright square on a dark ground
+    peaks outside the square (it looks larger), of a dark square on a bright ground inside it. ``linear=True`` puts the
+    edges back on the boundary."""
+    lin = np.full((240, 320), 0.6 if not bright_inside else 0.03, np.float64)
+    lin[60:140, 100:180] = 0.6 if bright_inside else 0.03  # boundary at x = 99.5 / 179.5 (pixel-centre coordinates)
+    lin = cv2.GaussianBlur(lin, (0, 0), 1.5)
+    img = np.repeat(_srgb(lin)[..., None], 3, axis=2)
+    Kp = make_K(300.0, 300.0, 159.5, 119.5)
+    box = np.array([100.0, 60.0, 180.0, 140.0])
+
+    def left_offset(linear: bool) -> float:  # median signed x offset of the left side's edges, + = into the square
+        pe = photo_edges(img, Kp, box, object_px=160, linear=linear)
+        xy = pe.crop.to_original(pe.edge_xy)
+        left = (np.abs(xy[:, 0] - 99.5) < 2.0) & (np.abs(xy[:, 1] - 100.0) < 30)
+        assert left.sum() > 40
+        return float(np.median(xy[left, 0] - 99.5))
+
+    encoded, linear = left_offset(False), left_offset(True)
+    assert abs(linear) < 0.12
+    assert (encoded < -0.3) if bright_inside else (encoded > 0.3)  # towards the dark side
 
 
 def test_edpf_edges_find_the_square_boundary_on_a_colour_only_step():
@@ -146,6 +176,32 @@ def test_alignment_from_the_true_pose_stays_and_fits(part, make_pose):
     assert edge_fit(ren, pe, far).share < res.fit.share - 0.3
 
 
+def test_silhouette_outset_is_half_a_render_pixel_less_the_inset_in_crop_px(part, make_pose):
+    mesh, ren = part
+    T = make_pose(mesh, 7, distance_factor=3.5, offset_px=40, K=K)
+    img, box, _ = photo([ren], [T], 7)
+    pe = photo_edges(img, K, box)
+    assert silhouette_outset(pe, 0.0) == 0.5
+    assert silhouette_outset(pe, 1.0) == pytest.approx(0.5 - 1.0 / pe.scale)
+    assert silhouette_outset(pe, -0.5) == pytest.approx(0.5 + 0.5 / pe.scale)
+
+
+def test_silhouette_inset_brings_the_aligned_pose_closer_by_the_inset(part, make_pose):
+    """Silhouette points moved inwards by ``sil_inset`` photo px make the model appear smaller: aligned to the same
+    outline it comes closer by about 2 * inset / the outline's width (the outline itself does not change)."""
+    mesh, ren = part
+    T = make_pose(mesh, 7, distance_factor=3.5, offset_px=40, K=K)
+    img, box, _ = photo([ren], [T], 7)
+    pe = photo_edges(img, K, box)
+    kw = ALIGN | {"box_taper": 0.0}
+    z0 = align(ren, pe, T, hull=mesh.hull_vertices, **kw).T_cam_from_obj[2, 3]
+    z1 = align(ren, pe, T, hull=mesh.hull_vertices, **(kw | {"sil_inset": 1.0})).T_cam_from_obj[2, 3]
+    width = float(np.sqrt((box[2] - box[0]) * (box[3] - box[1])))  # photo px
+    expected = 2.0 / width
+    assert abs(z0 - T[2, 3]) / T[2, 3] < 0.005
+    assert 0.4 * expected < (z0 - z1) / z0 < 2.0 * expected
+
+
 def test_region_support_is_high_at_the_true_pose_and_drops_off_it(part, make_pose):
     """The colour region steps where the true pose's silhouette lies (most silhouette points within fit_px), not
     where a pose 8 % too far puts it; the support counts a point on an edge or on such a step, so it is at least
@@ -174,7 +230,8 @@ def test_reported_fit_is_the_fit_of_the_final_pose_rendered_afresh(part, make_po
     T0 = turned(T, mesh.center, 6.0, 0.03, 2.0, np.random.default_rng(11))
     res = align(ren, pe, T0, hull=mesh.hull_vertices, **dict(ALIGN, rerender=rerender))
     assert rotation_angle_deg(res.T_cam_from_obj[:3, :3], T0[:3, :3]) > 1.0  # it moved
-    fresh = edge_fit(ren, pe, res.T_cam_from_obj, fit_px=ALIGN["fit_px"], region=True)  # its colour model too
+    fresh = edge_fit(ren, pe, res.T_cam_from_obj, fit_px=ALIGN["fit_px"], region=True,  # its colour model too
+                     sil_inset=ALIGN["sil_inset"])
     assert res.fit == fresh and np.isfinite(res.fit.region_share)
     assert edge_fit(ren, pe, T0, fit_px=ALIGN["fit_px"]).share < res.fit.share
 

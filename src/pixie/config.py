@@ -370,6 +370,11 @@ class AlignConfig(_Section):
     # median rotation 14.0° vs 18.8°; bench/RESULTS.md "Session 12: the box at the coarsest scale only")
     box_taper: float = 0.0
     crease_weight: float = 0.5
+    # photo px by which a real photo's silhouette edge lies inside the object's geometric outline (blur, and shading
+    # that falls off towards a curved outline): the model's silhouette points move inwards by as much. LM-O 716 on the
+    # same starts: 0.25 -> 261 ADD(-S) hits / AR 0.499 / median rotation 11.4° (halves 125 / 136), 0.5 -> 234 (112 / 122),
+    # 0 -> 245 / 0.490 / 12.0° (122 / 123); chosen on half 0, better on half 1 (bench/RESULTS.md, session 27)
+    silhouette_inset_px: float = 0.25
     # a matcher hypothesis's PnP inliers as residuals too (interior points the contour does not constrain): their
     # total weight is w_matches x the contour points', Tukey scale match_px (crop px); 0 = contour and box only
     w_matches: float = 0.0
@@ -378,6 +383,9 @@ class AlignConfig(_Section):
     # the photo's edge pixels: 'canny' (colour gradient, canny_low / canny_high) or 'edpf' (parameter-free Edge Drawing
     # per colour channel, cv2.ximgproc); LM-O basin from 10° / 3 %, 96 targets: 0.49 both (bench/RESULTS.md, session 23)
     edge_detector: str = "canny"
+    # each photo edge where the linear-light gradient peaks (the sRGB curve moves an encoded blurred edge towards its
+    # darker side by ~0.3-0.6 px: bright objects look larger, dark ones smaller)
+    linear_edges: bool = False
     canny_low: float = 5.0  # Canny hysteresis thresholds, grey levels per photo pixel
     canny_high: float = 12.0
     fit_px: float = 1.5  # aligned fit: a contour point is supported by an edge this close (crop px)
@@ -412,7 +420,8 @@ CHOICES["align.edge_detector"] = ("canny", "edpf")
 CHOICES["align.confidence_terms"] = CONFIDENCE_TERMS
 RANGES.update({"align.region_snap": (0, 100, True), "align.min_contrast": (0, 1, True), "align.w_box": (0, None, True), "align.box_taper": (0, 1, True), "align.hypotheses": (0, 64, True), "align.flips": (0, 64, True), "align.object_px": (32, 2048, True),
                "align.coarse_px": (0, 2048, True), "align.coarse_levels": (0, 16, True),
-               "align.iters": (1, 100, True), "align.rerender": (1, 100, True), "align.crease_weight": (0, 10, True), "align.rot_prior": (0, None, True),
+               "align.iters": (1, 100, True), "align.rerender": (1, 100, True), "align.crease_weight": (0, 10, True),
+               "align.silhouette_inset_px": (-10, 10, True), "align.rot_prior": (0, None, True),
                "align.canny_low": (0, None, True), "align.canny_high": (0, None, True), "align.fit_px": (0, 100, False),
                "align.w_fit": (0, None, True), "align.w_support": (0, None, True), "align.min_fit": (0, 1, True),
                "align.w_matches": (0, None, True), "align.match_px": (0, 100, False),

@@ -51,7 +51,7 @@ from pixie.geometry.rotations import rodrigues
 from pixie.references.templates import CREASE, SILHOUETTE, view_points
 
 __all__ = ["PhotoEdges", "AlignResult", "EdgeFit", "photo_edges", "model_points", "align", "align_kwargs", "coarse_kwargs", "coarse_levels", "photo_edges_kwargs", "calibrated_confidence", "confidence_size", "edge_fit",
-           "edge_distances", "flip_twins"]
+           "edge_distances", "flip_twins", "silhouette_outset"]
 
 
 @dataclass(kw_only=True)
@@ -121,8 +121,9 @@ class ModelPoints:
 
 
 def model_points(renderer: Renderer, T: np.ndarray, K: np.ndarray, size: int, n_points: int = 240,
-                 crease_share: float = 0.3) -> ModelPoints | None:
-    """Silhouette and crease points of the object rendered at ``T`` in a ``size`` x ``size`` camera ``K``."""
+                 crease_share: float = 0.3, outset: float = 0.5) -> ModelPoints | None:
+    """Silhouette and crease points of the object rendered at ``T`` in a ``size`` x ``size`` camera ``K``; silhouette
+    points are moved ``outset`` render px outwards (0.5: the boundary pixel's centre to the outline, on average)."""
     r = renderer.render(T, K, size, size)
     m = r.mask
     if m.sum() < 20:
@@ -141,7 +142,7 @@ def model_points(renderer: Renderer, T: np.ndarray, K: np.ndarray, size: int, n_
     n = -np.stack([gx, gy], 1).astype(np.float64)
     n /= np.maximum(np.linalg.norm(n, axis=1, keepdims=True), 1e-9)
     sil = (kind == SILHOUETTE)[:, None]
-    return ModelPoints(xyz=xyz, kind=kind, ori=np.asarray(ori, np.float64), offset=np.where(sil, 0.5 * n, 0.0),
+    return ModelPoints(xyz=xyz, kind=kind, ori=np.asarray(ori, np.float64), offset=np.where(sil, float(outset) * n, 0.0),
                        outward=np.where(sil, n, 0.0), T_render=np.asarray(T, np.float64).copy(), mask=m,
                        tri=r.tri_ids[P[:, 1], P[:, 0]].astype(np.int64))
 
@@ -467,7 +468,8 @@ def align(renderer: Renderer, pe: PhotoEdges, T0: np.ndarray, center: np.ndarray
           coarse_schedule: tuple[float, ...] = (8.0, 4.0), out_cost: float = 1.0,
           matches: tuple[np.ndarray, np.ndarray] | None = None, w_matches: float = 0.0,
           match_px: float = 10.0, face_parts: np.ndarray | None = None, drop_parts=(),
-          box_taper: float = 1.0, region_snap: float = 0.0, region_fallback: bool = False) -> AlignResult:
+          box_taper: float = 1.0, region_snap: float = 0.0, region_fallback: bool = False,
+          sil_inset: float = 0.0) -> AlignResult:
     """Levenberg–Marquardt alignment of ``T0`` (photo camera) to the photo's edges, coarse to fine.
 
     Parameters
@@ -501,6 +503,8 @@ def align(renderer: Renderer, pe: PhotoEdges, T0: np.ndarray, center: np.ndarray
         first, coarsest scale: it sets depth in the wide basin and leaves the final fit to the contour)
     face_parts, drop_parts : the mesh's part index per triangle and parts whose points are left out (parts the
         photo does not support, e.g. a missing part: :func:`pixie.cues.parts.robust_part_fit`)
+    sil_inset : photo px by which the photo's silhouette edge lies inside the geometric outline (:func:`silhouette_outset`);
+        the model's silhouette points are moved inwards by as much, at every level and in the final fit
     """
     if search not in SEARCHES:
         raise ValueError(f"align: search must be one of {SEARCHES}, got {search!r}")
@@ -536,7 +540,8 @@ def align(renderer: Renderer, pe: PhotoEdges, T0: np.ndarray, center: np.ndarray
                 if last is None or last[0] is not lv or not np.array_equal(last[1], T):
                     # a render (and its foreground map) depends on the pose and the level's camera only: the
                     # pose has not moved since the last one (LM converged or refused every step) -> reuse it
-                    full = mp = model_points(renderer, T, K, lv.size, n_points, crease_share)
+                    full = mp = model_points(renderer, T, K, lv.size, n_points, crease_share,
+                                             silhouette_outset(lv, sil_inset))
                     if mp is not None and face_parts is not None and len(drop_parts):
                         mp = mp.subset(~np.isin(np.asarray(face_parts)[mp.tri], np.asarray(list(drop_parts))))
                         mp = mp if len(mp.xyz) >= 6 else None
@@ -567,9 +572,16 @@ def align(renderer: Renderer, pe: PhotoEdges, T0: np.ndarray, center: np.ndarray
             history.append(cur if np.isfinite(cur) else float("nan"))
     same = last is not None and last[0] is pe and np.array_equal(last[1], T)  # the fit counts every part's points
     fit = edge_fit(renderer, pe, T, n_points=n_points, fit_px=fit_px, max_bin_gap=max_bin_gap,
-                   points=last[2] if same else None, region=True, fg=cfg.get("fg") if same else None)
+                   points=last[2] if same else None, region=True, fg=cfg.get("fg") if same else None,
+                   sil_inset=sil_inset)
     return AlignResult(T_cam_from_obj=T, T_init=np.asarray(T0, np.float64), fit=fit, iterations=n_it,
                        converged=converged, history=history)
+
+
+def silhouette_outset(pe: PhotoEdges, sil_inset: float) -> float:
+    """Render px by which model silhouette points move outwards in ``pe``'s crop: half a pixel (the boundary pixel's
+    centre to the outline) less ``sil_inset`` photo px (``pe.scale`` photo px per crop px)."""
+    return 0.5 - float(sil_inset) / float(pe.scale)
 
 
 def align_kwargs(ac) -> dict:
@@ -580,7 +592,7 @@ def align_kwargs(ac) -> dict:
                 rot_prior=ac.rot_prior,
                 fit_px=ac.fit_px, search=ac.search, min_contrast=ac.min_contrast, w_box=ac.w_box,
                 box_taper=ac.box_taper, w_matches=ac.w_matches, match_px=ac.match_px, region_snap=ac.region_snap,
-                region_fallback=ac.region_fallback)
+                region_fallback=ac.region_fallback, sil_inset=ac.silhouette_inset_px)
 
 
 def coarse_levels(ac) -> int:
@@ -630,7 +642,8 @@ def calibrated_confidence(ac, inputs: dict[str, float]) -> float:
 def photo_edges_kwargs(ac) -> dict:
     """The keywords of :func:`photo_edges` that ``config.align`` sets (the estimator, benches): the crop's object size
     the edge detector and the Canny thresholds."""
-    return dict(object_px=ac.object_px, canny_low=ac.canny_low, canny_high=ac.canny_high, detector=ac.edge_detector)
+    return dict(object_px=ac.object_px, canny_low=ac.canny_low, canny_high=ac.canny_high, detector=ac.edge_detector,
+                linear=ac.linear_edges)
 
 
 def edge_distances(pe: PhotoEdges, p: np.ndarray, ori: np.ndarray, max_bin_gap: int = 1,
@@ -647,11 +660,13 @@ def edge_distances(pe: PhotoEdges, p: np.ndarray, ori: np.ndarray, max_bin_gap: 
 
 def edge_fit(renderer: Renderer, pe: PhotoEdges, T: np.ndarray, n_points: int = 240, fit_px: float = 1.5,
              max_bin_gap: int = 1, crease_share: float = 0.3, points: ModelPoints | None = None,
-             region: bool = False, fg: np.ndarray | None = None) -> EdgeFit:
+             region: bool = False, fg: np.ndarray | None = None, sil_inset: float = 0.0) -> EdgeFit:
     """The aligned fit of pose ``T``: see :class:`EdgeFit`. ``points``: :func:`model_points` of ``T`` in ``pe``'s
     camera with the same ``n_points`` / ``crease_share`` when the caller has them (not rendered again). ``region``:
-    also the region and support shares, from ``fg`` (:func:`foreground_map` of those points' render) when given."""
-    mp = model_points(renderer, T, pe.K, pe.size, n_points, crease_share) if points is None else points
+    also the region and support shares, from ``fg`` (:func:`foreground_map` of those points' render) when given.
+    ``sil_inset``: as :func:`align`'s (used when the points are rendered here)."""
+    mp = (model_points(renderer, T, pe.K, pe.size, n_points, crease_share, silhouette_outset(pe, sil_inset))
+          if points is None else points)
     unsupported = 0.0 if region else float("nan")  # the region shares of a pose with no visible point
     none = EdgeFit(share=0.0, silhouette_share=0.0, visible=0.0, mean_dist=float("inf"), n_points=0,
                    region_share=unsupported, support_share=unsupported)
