@@ -112,12 +112,8 @@ def _linear_light_peaks(lin: np.ndarray, sigma: float, exy: np.ndarray, g: np.nd
     dark ones smaller). In linear light the peak is the step itself. Hill-climbs from the edge (parabola vertex at the
     end), so a neighbouring stronger edge is not taken.
     """
-    if sigma > 0:
-        lin = cv2.GaussianBlur(lin, (0, 0), sigma)
-    gx = cv2.Sobel(lin, cv2.CV_32F, 1, 0, ksize=3)
-    gy = cv2.Sobel(lin, cv2.CV_32F, 0, 1, ksize=3)
+    gx, gy = _colour_gradients(lin, sigma)  # the channel of largest magnitude = the largest magnitude
     mag = np.sqrt(gx * gx + gy * gy)
-    mag = mag.max(axis=2) if mag.ndim == 3 else mag
     n = max(int(np.ceil(reach / step)), 1)
     t = np.arange(-n, n + 1) * step
     q = exy[:, None, :] + t[None, :, None] * g[:, None, :]  # (M, 2n+1, 2)
