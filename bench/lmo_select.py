@@ -3,6 +3,11 @@
 Usage::
 
     python bench/lmo_select.py out/bench/lmo_pipeline/runs/<hash>/targets.jsonl [--out out/bench/lmo_select.json]
+    python bench/lmo_select.py out/bench/rank/dump_0.pkl out/bench/rank/dump_1.pkl --variant NAME [--out ...]
+
+The second form reads the aligned candidates that ``bench/lmo_align_study.py --dump`` wrote for one variant (both
+parts, in the order given: part 0's targets then part 1's); the chosen pose is each target's first candidate, the
+runner-up for ``margin`` the first one more than 10° away in rotation (as ``PoseEstimator.distinct``).
 
 Reads a run made with ``align.enabled=true`` (every target records its aligned candidates, ``cands``: the starts and
 their aligned poses with the terms ``fused`` (the shape stage's score) and ``fit`` (share of visible contour points on
@@ -27,13 +32,14 @@ from __future__ import annotations
 
 import argparse
 import json
+import pickle
 from pathlib import Path
 
 import numpy as np
 
 from common import DEFAULT_DATASET  # noqa: E402  (bench/common.py: puts src/ on the path)
 
-from pixie.config import CONFIDENCE_TERMS  # noqa: E402
+from pixie.config import CONFIDENCE_TERMS, AlignConfig  # noqa: E402
 from pixie.cues.edge_align import confidence_size  # noqa: E402
 
 GRID = (0.0, 0.25, 0.5, 1.0, 2.0, 4.0, 8.0)
@@ -42,6 +48,27 @@ GRID = (0.0, 0.25, 0.5, 1.0, 2.0, 4.0, 8.0)
 def load(path: Path) -> list[dict]:
     recs = [json.loads(line) for line in path.read_text().splitlines() if line.strip()]
     return [r for r in recs if r.get("cands")]
+
+
+def _rot_deg(A: np.ndarray, B: np.ndarray) -> float:
+    c = (np.trace(np.asarray(A)[:3, :3] @ np.asarray(B)[:3, :3].T) - 1.0) / 2.0
+    return float(np.degrees(np.arccos(np.clip(c, -1.0, 1.0))))
+
+
+def load_dumps(paths: list[Path], variant: str) -> list[dict]:
+    """Targets of ``lmo_align_study.py --dump`` files for ``variant`` in the record layout :func:`load` returns:
+    ``cands`` in the stage's order (the first is the chosen pose), ``hyps`` the chosen pose and the first candidate
+    more than 10° from it, ``add_ok`` / ``T`` / ``obj_id`` of the chosen pose."""
+    out = []
+    for path in paths:
+        for r in pickle.loads(path.read_bytes())["variants"][variant]:
+            c = r["cands"]
+            if not c:
+                continue
+            hyps = [c[0]] + [h for h in c[1:] if _rot_deg(h["T"], c[0]["T"]) > 10.0][:1]
+            out.append({"target": r["target"], "obj_id": int(r["target"][2]), "cands": c, "hyps": hyps,
+                        "add_ok": bool(c[0]["add_ok"]), "T": np.asarray(c[0]["T"])})
+    return out
 
 
 def choose(cands: list[dict], w_fit: float) -> tuple[int, float]:
@@ -123,14 +150,28 @@ def predict(xs: list[dict], ks: list[str], coef: list[float]) -> np.ndarray:
     return 1.0 / (1.0 + np.exp(-(coef[0] + _matrix(xs, ks) @ np.asarray(coef[1:]))))
 
 
+def reliability(p: np.ndarray, y: np.ndarray) -> list[dict]:
+    """Confidence bins (0.2 wide) -> how many poses and the share correct; printed as a table."""
+    print("| confidence | n | share correct |")
+    print("|---|---|---|")
+    rel = []
+    for lo, hi in ((0, 0.2), (0.2, 0.4), (0.4, 0.6), (0.6, 0.8), (0.8, 1.01)):
+        sel = (p >= lo) & (p < hi)
+        rel.append({"bin": [lo, min(hi, 1.0)], "n": int(sel.sum()), "correct": float(y[sel].mean()) if sel.any() else None})
+        print(f"| {lo:.1f}-{min(hi, 1.0):.1f} | {int(sel.sum())} | {y[sel].mean() if sel.any() else float('nan'):.2f} |")
+    return rel
+
+
 def main(argv=None) -> int:
     ap = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
-    ap.add_argument("targets", type=Path)
+    ap.add_argument("targets", type=Path, nargs="+", help="a run's targets.jsonl, or lmo_align_study.py dumps")
+    ap.add_argument("--variant", default=None, help="with dumps: the variant whose candidates are read")
+    ap.add_argument("--current", action="store_true", help="also report config.align.confidence as shipped")
     ap.add_argument("--out", type=Path, default=Path("out/bench/lmo_select.json"))
     ap.add_argument("--with-visible", action="store_true", help="let the confidence use fit_visible too")
     ap.add_argument("--dataset", type=Path, default=DEFAULT_DATASET, help="for the objects' diameters and the cameras")
     args = ap.parse_args(argv)
-    recs = load(args.targets)
+    recs = load_dumps(args.targets, args.variant) if args.variant else load(args.targets[0])
     fit_half, test_half = recs[0::2], recs[1::2]
     print(f"{len(recs)} targets with aligned candidates ({args.targets}); fitting half {len(fit_half)}, "
           f"report half {len(test_half)}")
@@ -167,24 +208,30 @@ def main(argv=None) -> int:
     print("| terms | AUC report half | coefficients (intercept first) |")
     print("|---|---|---|")
     models = {}
-    for ks in (["fit", "margin"], chosen):
+    shipped_terms = list(AlignConfig().confidence_terms)
+    for ks in (["fit", "margin"], shipped_terms, chosen):
         coef = fit_raw(xf, yf, ks)
         pt = predict(xt, ks, coef)
         models[",".join(ks)] = {"terms": ks, "coef": coef, "auc_report_half": auc(pt, yt)}
         print(f"| {', '.join(ks)} | {auc(pt, yt):.3f} | {[round(c, 3) for c in coef]} |")
     for k in names:
         print(f"  {k} alone: AUC report half {auc(np.array([x[k] for x in xt]), yt):.3f}")
+    if args.current:
+        ac = AlignConfig()
+        pc = predict(xt, list(ac.confidence_terms), list(ac.confidence))
+        models["current"] = {"terms": list(ac.confidence_terms), "coef": list(ac.confidence), "auc_report_half": auc(pc, yt)}
+        print(f"  shipped config.align.confidence {ac.confidence_terms}: AUC report half {auc(pc, yt):.3f}")
     pt = predict(xt, chosen, models[",".join(chosen)]["coef"])
     print(f"chosen: confidence_terms {chosen}, confidence {[round(c, 3) for c in models[','.join(chosen)]['coef']]}")
-    print("| confidence | n | share correct |")
-    print("|---|---|---|")
-    rel = []
-    for lo, hi in ((0, 0.2), (0.2, 0.4), (0.4, 0.6), (0.6, 0.8), (0.8, 1.01)):
-        sel = (pt >= lo) & (pt < hi)
-        rel.append({"bin": [lo, min(hi, 1.0)], "n": int(sel.sum()), "correct": float(yt[sel].mean()) if sel.any() else None})
-        print(f"| {lo:.1f}-{min(hi, 1.0):.1f} | {int(sel.sum())} | {yt[sel].mean() if sel.any() else float('nan'):.2f} |")
+    rel = reliability(pt, yt)
+    print(f"refitted on the fitting half, the shipped terms {shipped_terms}:")
+    models[",".join(shipped_terms)]["reliability"] = reliability(predict(xt, shipped_terms, models[",".join(shipped_terms)]["coef"]), yt)
+    if args.current:
+        print("shipped confidence:")
+        rel_current = reliability(pc, yt)
+        models["current"]["reliability"] = rel_current
     args.out.parent.mkdir(parents=True, exist_ok=True)
-    args.out.write_text(json.dumps({"targets": str(args.targets), "grid": {str(k): v for k, v in table.items()},
+    args.out.write_text(json.dumps({"targets": [str(p) for p in args.targets], "variant": args.variant, "grid": {str(k): v for k, v in table.items()},
                                     "w_fit": best, "confidence": models, "chosen_terms": chosen,
                                     "reliability": rel}, indent=1))
     return 0

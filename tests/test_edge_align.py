@@ -2,12 +2,15 @@
 
 from __future__ import annotations
 
+from dataclasses import replace
+
 import cv2
 import numpy as np
 import pytest
 
 from pixie.config import CHOICES, PixieConfig
-from pixie.cues.edge_align import align, align_kwargs, edge_fit, flip_twins, photo_edges, silhouette_outset
+from pixie.cues.edge_align import (align, align_kwargs, edge_fit, flip_twins, photo_edges, photo_edges_kwargs,
+                                   silhouette_outset)
 from pixie.geometry.camera import crop_intrinsics, make_K, project, rotation_angle_deg, transform_points
 from pixie.geometry.render import Renderer
 from pixie.pipeline.query import check_bbox
@@ -17,6 +20,7 @@ from pixie.synth.e2e import K_ALIGN, align_trials, clutter_photo, plate_renderer
 K = K_ALIGN
 _A = PixieConfig().align
 ALIGN = align_kwargs(_A)  # the shipped defaults
+PHOTO = photo_edges_kwargs(_A)  # ... and the photo's edges as the estimator makes them (the silhouette inset)
 
 
 def turned(T: np.ndarray, centre: np.ndarray, deg: float, dz: float, shift_px: float,
@@ -34,7 +38,7 @@ def part(proc_mesh):
 
 
 def convergence(part, plate=None, n: int = 12) -> list[tuple[float, float]]:
-    return align_trials(part[0], part[1], ALIGN, n=n, plate=plate)
+    return align_trials(part[0], part[1], ALIGN, n=n, plate=plate, photo_kw=PHOTO)
 
 
 # ------------------------------------------------------------------------------------------ photo side
@@ -165,7 +169,7 @@ def test_alignment_from_the_true_pose_stays_and_fits(part, make_pose):
     mesh, ren = part
     T = make_pose(mesh, 7, distance_factor=3.5, offset_px=40, K=K)
     img, box, _ = photo([ren], [T], 7)
-    pe = photo_edges(img, K, box)
+    pe = photo_edges(img, K, box, **PHOTO)
     res = align(ren, pe, T, hull=mesh.hull_vertices, **ALIGN)
     assert rotation_angle_deg(res.T_cam_from_obj[:3, :3], T[:3, :3]) < 0.5
     assert abs(res.T_cam_from_obj[2, 3] - T[2, 3]) / T[2, 3] < 0.005
@@ -181,21 +185,23 @@ def test_silhouette_outset_is_half_a_render_pixel_less_the_inset_in_crop_px(part
     T = make_pose(mesh, 7, distance_factor=3.5, offset_px=40, K=K)
     img, box, _ = photo([ren], [T], 7)
     pe = photo_edges(img, K, box)
-    assert silhouette_outset(pe, 0.0) == 0.5
-    assert silhouette_outset(pe, 1.0) == pytest.approx(0.5 - 1.0 / pe.scale)
-    assert silhouette_outset(pe, -0.5) == pytest.approx(0.5 + 0.5 / pe.scale)
+    assert pe.sil_inset == 0.0 and silhouette_outset(pe) == 0.5
+    assert photo_edges(img, K, box, sil_inset=1.0).sil_inset == 1.0
+    assert silhouette_outset(replace(pe, sil_inset=1.0)) == pytest.approx(0.5 - 1.0 / pe.scale)
+    assert silhouette_outset(replace(pe, sil_inset=-0.5)) == pytest.approx(0.5 + 0.5 / pe.scale)
+    assert photo_edges(img, K, box, **PHOTO).sil_inset == _A.silhouette_inset_px  # the estimator's edges carry it
 
 
 def test_silhouette_inset_brings_the_aligned_pose_closer_by_the_inset(part, make_pose):
-    """Silhouette points moved inwards by ``sil_inset`` photo px make the model appear smaller: aligned to the same
-    outline it comes closer by about 2 * inset / the outline's width (the outline itself does not change)."""
+    """Silhouette points moved inwards by the photo's ``sil_inset`` (photo px) make the model appear smaller: aligned to
+    the same outline it comes closer by about 2 * inset / the outline's width (the outline itself does not change)."""
     mesh, ren = part
     T = make_pose(mesh, 7, distance_factor=3.5, offset_px=40, K=K)
     img, box, _ = photo([ren], [T], 7)
-    pe = photo_edges(img, K, box)
+    pe = photo_edges(img, K, box, **PHOTO)
     kw = ALIGN | {"box_taper": 0.0}
     z0 = align(ren, pe, T, hull=mesh.hull_vertices, **kw).T_cam_from_obj[2, 3]
-    z1 = align(ren, pe, T, hull=mesh.hull_vertices, **(kw | {"sil_inset": 1.0})).T_cam_from_obj[2, 3]
+    z1 = align(ren, replace(pe, sil_inset=1.0), T, hull=mesh.hull_vertices, **kw).T_cam_from_obj[2, 3]
     width = float(np.sqrt((box[2] - box[0]) * (box[3] - box[1])))  # photo px
     expected = 2.0 / width
     assert abs(z0 - T[2, 3]) / T[2, 3] < 0.005
@@ -210,7 +216,7 @@ def test_region_support_is_high_at_the_true_pose_and_drops_off_it(part, make_pos
     for seed in (7, 8, 9):
         T = make_pose(mesh, seed, distance_factor=3.5, offset_px=40, K=K)
         img, box, _ = photo([ren], [T], seed)
-        pe = photo_edges(img, K, box)
+        pe = photo_edges(img, K, box, **PHOTO)
         far = T.copy()
         far[:3, 3] *= 1.08
         at, off = edge_fit(ren, pe, T, region=True), edge_fit(ren, pe, far, region=True)
@@ -226,12 +232,11 @@ def test_reported_fit_is_the_fit_of_the_final_pose_rendered_afresh(part, make_po
     mesh, ren = part
     T = make_pose(mesh, 11, distance_factor=3.5, offset_px=30, K=K)
     img, box, _ = photo([ren], [T], 11)
-    pe = photo_edges(img, K, box)
+    pe = photo_edges(img, K, box, **PHOTO)
     T0 = turned(T, mesh.center, 6.0, 0.03, 2.0, np.random.default_rng(11))
     res = align(ren, pe, T0, hull=mesh.hull_vertices, **dict(ALIGN, rerender=rerender))
     assert rotation_angle_deg(res.T_cam_from_obj[:3, :3], T0[:3, :3]) > 1.0  # it moved
-    fresh = edge_fit(ren, pe, res.T_cam_from_obj, fit_px=ALIGN["fit_px"], region=True,  # its colour model too
-                     sil_inset=ALIGN["sil_inset"])
+    fresh = edge_fit(ren, pe, res.T_cam_from_obj, fit_px=ALIGN["fit_px"], region=True)  # its colour model too
     assert res.fit == fresh and np.isfinite(res.fit.region_share)
     assert edge_fit(ren, pe, T0, fit_px=ALIGN["fit_px"]).share < res.fit.share
 
@@ -242,7 +247,7 @@ def test_alignment_with_every_part_dropped_returns_the_start(part, make_pose):
     mesh, ren = part
     T = make_pose(mesh, 7, distance_factor=3.5, offset_px=40, K=K)
     img, box, _ = photo([ren], [T], 7)
-    pe = photo_edges(img, K, box)
+    pe = photo_edges(img, K, box, **PHOTO)
     res = align(ren, pe, T, hull=mesh.hull_vertices, face_parts=np.zeros(len(mesh.faces), int), drop_parts={0},
                 **ALIGN)
     np.testing.assert_array_equal(res.T_cam_from_obj, T)
@@ -267,7 +272,7 @@ def test_matcher_correspondences_pull_a_turned_start_to_the_pose(part, make_pose
         uv = project(K, transform_points(T, xyz)) + rng.normal(0.0, 1.0, (80, 2))
         uv[:20] = rng.uniform([box[0], box[1]], [box[2], box[3]], (20, 2))  # outliers inside the box
         T0 = turned(T, mesh.center, 10.0, 0.05, 3.0, rng)
-        res = align(ren, photo_edges(img, K, box), T0, hull=mesh.hull_vertices, matches=(uv, xyz),
+        res = align(ren, photo_edges(img, K, box, **PHOTO), T0, hull=mesh.hull_vertices, matches=(uv, xyz),
                     **(ALIGN | {"w_matches": 3.0, "match_px": 30.0}))
         Ta = res.T_cam_from_obj
         assert rotation_angle_deg(Ta[:3, :3], T[:3, :3]) < 1.0, seed
@@ -306,7 +311,7 @@ def test_alignment_with_its_first_scales_on_a_coarse_crop_converges(part):
     kw = coarse_kwargs(ac, None)
     assert kw["coarse_schedule"] == (8.0, 4.0) and kw["schedule"] == (4.0, 2.0)
     for plate, need in ((None, 10), (plate_renderer(), 9)):
-        errs = align_trials(part[0], part[1], ALIGN, n=12, plate=plate, coarse_ac=ac)
+        errs = align_trials(part[0], part[1], ALIGN, n=12, plate=plate, coarse_ac=ac, photo_kw=PHOTO)
         assert sum(r < 1.0 and dz < 0.01 for r, dz in errs) >= need, errs
 
 
@@ -335,7 +340,7 @@ def test_alignment_on_a_crop_without_edges_returns_a_finite_pose(part, make_pose
     T = make_pose(mesh, 3, distance_factor=3.5, offset_px=0, K=K)
     img = np.full((480, 640, 3), 128, np.uint8)
     box = projected_box(T, K, mesh.hull_vertices)
-    res = align(ren, photo_edges(img, K, box), T, hull=mesh.hull_vertices, **(ALIGN | {"search": search}))
+    res = align(ren, photo_edges(img, K, box, **PHOTO), T, hull=mesh.hull_vertices, **(ALIGN | {"search": search}))
     assert np.isfinite(res.T_cam_from_obj).all()
 
 
@@ -345,7 +350,7 @@ def test_edge_search_along_the_normal_still_converges_on_rendered_photos(part):
     22): measured 12/12 within 1° / 1 % from 10° / 5 % clean, 11/12 with half the part covered."""
     kw = ALIGN | {"search": "normal"}
     for plate in (None, plate_renderer()):
-        errs = align_trials(part[0], part[1], kw, n=12, plate=plate)
+        errs = align_trials(part[0], part[1], kw, n=12, plate=plate, photo_kw=PHOTO)
         assert sum(r < 1.0 and dz < 0.01 for r, dz in errs) >= 9, errs
 
 
@@ -358,7 +363,7 @@ def test_alignment_on_real_lmo_crops_returns_finite_poses(lmo_dataset, lmo_meshe
     box = check_bbox(g.box_visib, img.shape[:2])
     mesh = lmo_meshes[t.obj_id]
     ren = Renderer(mesh)
-    res = align(ren, photo_edges(img, Kc, box), g.T_cam_from_obj, hull=mesh.hull_vertices, **ALIGN)
+    res = align(ren, photo_edges(img, Kc, box, **PHOTO), g.T_cam_from_obj, hull=mesh.hull_vertices, **ALIGN)
     assert np.all(np.isfinite(res.T_cam_from_obj))
     assert 0.0 <= res.fit.share <= 1.0
     assert rotation_angle_deg(res.T_cam_from_obj[:3, :3], g.T_cam_from_obj[:3, :3]) < 20.0

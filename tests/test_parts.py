@@ -7,7 +7,7 @@ import numpy as np
 import pytest
 
 from pixie.config import PART_KINDS, PixieConfig, RefsConfig
-from pixie.cues.edge_align import align, align_kwargs, photo_edges
+from pixie.cues.edge_align import align, align_kwargs, photo_edges, photo_edges_kwargs
 from pixie.cues.parts import (coarse_pixels, complement_renderers, judge_parts, part_moves, part_renderers, part_support,
                               report_kwargs, robust_part_fit)
 from pixie.errors import ConfigError, MeshError
@@ -142,6 +142,7 @@ _MOVES.set("parts.moves", True)
 MOVES_SUPPORT, MOVES_JUDGE = report_kwargs(_MOVES.parts)  # ... with the 3D move search on
 _AC = PixieConfig().align
 ALIGN = align_kwargs(_AC)  # the shipped align defaults
+PHOTO = photo_edges_kwargs(_AC)  # ... and the photo's edges as the estimator makes them (the silhouette inset)
 
 
 def _report(lego, pe, T, moves: bool = False):
@@ -163,7 +164,7 @@ def test_a_removed_part_is_reported_missing_after_alignment_and_the_complete_ass
         T = _pose(seed, mesh)
         for asm, removed in ((lego["bad"], lego["removed"]), (lego["asm"], None)):
             img, box = _photo(asm, T, seed)
-            pe = photo_edges(img, K, box)
+            pe = photo_edges(img, K, box, **PHOTO)
             start = _turned(T, mesh.center, 4.0, 0.02, seed)
             T1 = align(lego["ren"], pe, start, hull=mesh.hull_vertices, **ALIGN).T_cam_from_obj
             Te, parts, _ = robust_part_fit(lego["ren"], mesh.face_parts, mesh.part_names, pe, T1,
@@ -238,18 +239,18 @@ def test_a_shifted_or_turned_brick_is_reported_displaced_with_its_move_and_a_com
     for seed in range(6):
         T = _pose(seed, mesh)
         img, box = _photo(lego["asm"], T, seed)
-        clean = _report(lego, photo_edges(img, K, box), T, moves=True)
+        clean = _report(lego, photo_edges(img, K, box, **PHOTO), T, moves=True)
         n_clean += max(p.move_gain for p in clean) < PC.move_gain and not any(p.verdict == "displaced" for p in clean)
         bad = physical(lambda rng: shifted_part(lego["asm"], rng), seed)
         img, box = _photo(bad, T, seed)
-        p = _report(lego, photo_edges(img, K, box), T, moves=True)[bad.defect["part"]]
+        p = _report(lego, photo_edges(img, K, box, **PHOTO), T, moves=True)[bad.defect["part"]]
         n_shift += p.verdict == "displaced"
         off = np.asarray(bad.defect["offset_mm"])
         axis = int(np.argmax(np.abs(off)))
         n_axis += p.move[:2] == ("+" if off[axis] > 0 else "-") + "xyz"[axis]
         bad = physical(lambda rng: rotated_part(lego["asm"], rng), seed)
         img, box = _photo(bad, T, seed)
-        p = _report(lego, photo_edges(img, K, box), T, moves=True)[bad.defect["part"]]
+        p = _report(lego, photo_edges(img, K, box, **PHOTO), T, moves=True)[bad.defect["part"]]
         n_turn += p.verdict in ("displaced", "missing")
     assert n_shift >= 5 and n_axis >= 5 and n_turn >= 5 and n_clean >= 5, (n_shift, n_axis, n_turn, n_clean)
 
@@ -289,10 +290,10 @@ def test_a_part_hidden_by_an_occluder_is_not_reported_missing(lego):
     for seed in range(12):
         T = _pose(seed, mesh)
         img, box = _photo(lego["asm"], T, seed)
-        clear = _report(lego, photo_edges(img, K, box), T)
+        clear = _report(lego, photo_edges(img, K, box, **PHOTO), T)
         k = max((p for p in clear if p.index != 0), key=lambda p: p.visible * p.n_points).index
         img, box = _occluded_photo(lego["asm"], mesh, T, seed, k)
-        parts = _report(lego, photo_edges(img, K, box), T)
+        parts = _report(lego, photo_edges(img, K, box, **PHOTO), T)
         n_ok += parts[k].verdict in ("present", "not visible")
         n_unsupported += parts[k].support < 0.2
     assert n_unsupported >= 9, n_unsupported  # the photo really hides it

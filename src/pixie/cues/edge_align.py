@@ -468,8 +468,7 @@ def align(renderer: Renderer, pe: PhotoEdges, T0: np.ndarray, center: np.ndarray
           coarse_schedule: tuple[float, ...] = (8.0, 4.0), out_cost: float = 1.0,
           matches: tuple[np.ndarray, np.ndarray] | None = None, w_matches: float = 0.0,
           match_px: float = 10.0, face_parts: np.ndarray | None = None, drop_parts=(),
-          box_taper: float = 1.0, region_snap: float = 0.0, region_fallback: bool = False,
-          sil_inset: float = 0.0) -> AlignResult:
+          box_taper: float = 1.0, region_snap: float = 0.0, region_fallback: bool = False) -> AlignResult:
     """Levenberg–Marquardt alignment of ``T0`` (photo camera) to the photo's edges, coarse to fine.
 
     Parameters
@@ -503,8 +502,9 @@ def align(renderer: Renderer, pe: PhotoEdges, T0: np.ndarray, center: np.ndarray
         first, coarsest scale: it sets depth in the wide basin and leaves the final fit to the contour)
     face_parts, drop_parts : the mesh's part index per triangle and parts whose points are left out (parts the
         photo does not support, e.g. a missing part: :func:`pixie.cues.parts.robust_part_fit`)
-    sil_inset : photo px by which the photo's silhouette edge lies inside the geometric outline (:func:`silhouette_outset`);
-        the model's silhouette points are moved inwards by as much, at every level and in the final fit
+
+    The model's silhouette points sit ``pe.sil_inset`` (and ``coarse.sil_inset``) photo px inside the outline, at every
+    level and in the final fit (:func:`silhouette_outset`).
     """
     if search not in SEARCHES:
         raise ValueError(f"align: search must be one of {SEARCHES}, got {search!r}")
@@ -541,7 +541,7 @@ def align(renderer: Renderer, pe: PhotoEdges, T0: np.ndarray, center: np.ndarray
                     # a render (and its foreground map) depends on the pose and the level's camera only: the
                     # pose has not moved since the last one (LM converged or refused every step) -> reuse it
                     full = mp = model_points(renderer, T, K, lv.size, n_points, crease_share,
-                                             silhouette_outset(lv, sil_inset))
+                                             silhouette_outset(lv))
                     if mp is not None and face_parts is not None and len(drop_parts):
                         mp = mp.subset(~np.isin(np.asarray(face_parts)[mp.tri], np.asarray(list(drop_parts))))
                         mp = mp if len(mp.xyz) >= 6 else None
@@ -572,16 +572,16 @@ def align(renderer: Renderer, pe: PhotoEdges, T0: np.ndarray, center: np.ndarray
             history.append(cur if np.isfinite(cur) else float("nan"))
     same = last is not None and last[0] is pe and np.array_equal(last[1], T)  # the fit counts every part's points
     fit = edge_fit(renderer, pe, T, n_points=n_points, fit_px=fit_px, max_bin_gap=max_bin_gap,
-                   points=last[2] if same else None, region=True, fg=cfg.get("fg") if same else None,
-                   sil_inset=sil_inset)
+                   points=last[2] if same else None, region=True, fg=cfg.get("fg") if same else None)
     return AlignResult(T_cam_from_obj=T, T_init=np.asarray(T0, np.float64), fit=fit, iterations=n_it,
                        converged=converged, history=history)
 
 
-def silhouette_outset(pe: PhotoEdges, sil_inset: float) -> float:
+def silhouette_outset(pe: PhotoEdges) -> float:
     """Render px by which model silhouette points move outwards in ``pe``'s crop: half a pixel (the boundary pixel's
-    centre to the outline) less ``sil_inset`` photo px (``pe.scale`` photo px per crop px)."""
-    return 0.5 - float(sil_inset) / float(pe.scale)
+    centre to the outline) less the photo's silhouette inset ``pe.sil_inset`` (photo px; ``pe.scale`` photo px per
+    crop px)."""
+    return 0.5 - float(pe.sil_inset) / float(pe.scale)
 
 
 def align_kwargs(ac) -> dict:
@@ -592,7 +592,7 @@ def align_kwargs(ac) -> dict:
                 rot_prior=ac.rot_prior,
                 fit_px=ac.fit_px, search=ac.search, min_contrast=ac.min_contrast, w_box=ac.w_box,
                 box_taper=ac.box_taper, w_matches=ac.w_matches, match_px=ac.match_px, region_snap=ac.region_snap,
-                region_fallback=ac.region_fallback, sil_inset=ac.silhouette_inset_px)
+                region_fallback=ac.region_fallback)
 
 
 def coarse_levels(ac) -> int:
@@ -641,9 +641,9 @@ def calibrated_confidence(ac, inputs: dict[str, float]) -> float:
 
 def photo_edges_kwargs(ac) -> dict:
     """The keywords of :func:`photo_edges` that ``config.align`` sets (the estimator, benches): the crop's object size
-    the edge detector and the Canny thresholds."""
+    the edge detector, the Canny thresholds and the silhouette inset."""
     return dict(object_px=ac.object_px, canny_low=ac.canny_low, canny_high=ac.canny_high, detector=ac.edge_detector,
-                linear=ac.linear_edges)
+                linear=ac.linear_edges, sil_inset=ac.silhouette_inset_px)
 
 
 def edge_distances(pe: PhotoEdges, p: np.ndarray, ori: np.ndarray, max_bin_gap: int = 1,
@@ -660,12 +660,12 @@ def edge_distances(pe: PhotoEdges, p: np.ndarray, ori: np.ndarray, max_bin_gap: 
 
 def edge_fit(renderer: Renderer, pe: PhotoEdges, T: np.ndarray, n_points: int = 240, fit_px: float = 1.5,
              max_bin_gap: int = 1, crease_share: float = 0.3, points: ModelPoints | None = None,
-             region: bool = False, fg: np.ndarray | None = None, sil_inset: float = 0.0) -> EdgeFit:
+             region: bool = False, fg: np.ndarray | None = None) -> EdgeFit:
     """The aligned fit of pose ``T``: see :class:`EdgeFit`. ``points``: :func:`model_points` of ``T`` in ``pe``'s
     camera with the same ``n_points`` / ``crease_share`` when the caller has them (not rendered again). ``region``:
     also the region and support shares, from ``fg`` (:func:`foreground_map` of those points' render) when given.
-    ``sil_inset``: as :func:`align`'s (used when the points are rendered here)."""
-    mp = (model_points(renderer, T, pe.K, pe.size, n_points, crease_share, silhouette_outset(pe, sil_inset))
+    Silhouette points rendered here sit ``pe.sil_inset`` photo px inside the outline (:func:`silhouette_outset`)."""
+    mp = (model_points(renderer, T, pe.K, pe.size, n_points, crease_share, silhouette_outset(pe))
           if points is None else points)
     unsupported = 0.0 if region else float("nan")  # the region shares of a pose with no visible point
     none = EdgeFit(share=0.0, silhouette_share=0.0, visible=0.0, mean_dist=float("inf"), n_points=0,

@@ -45,6 +45,9 @@ class PhotoEdges:
         the photo): where the projected object's extremes lie when the box is exact
     valid : (size, size) bool, crop pixels inside the photo
     colour : (size, size) int32 joint RGB bin of each crop pixel (:func:`pixie.region.colour_index`)
+    sil_inset : photo px by which this photo's silhouette edges lie inside the object's geometric outline (blur, and
+        shading that falls off towards a curved outline); the model's silhouette points are moved inwards by as much
+        wherever they are compared with these edges (:func:`pixie.cues.edge_align.silhouette_outset`)
     """
 
     crop: QueryCrop
@@ -63,6 +66,7 @@ class PhotoEdges:
     box_sides: np.ndarray
     valid: np.ndarray
     colour: np.ndarray
+    sil_inset: float = 0.0
 
     def to_photo(self, xy: np.ndarray) -> np.ndarray:
         return self.crop.to_original(xy)
@@ -140,7 +144,8 @@ def _linear_light_peaks(lin: np.ndarray, sigma: float, exy: np.ndarray, g: np.nd
 def photo_edges(image: np.ndarray, K: np.ndarray, box_xyxy: np.ndarray, mask: np.ndarray | None = None,
                 object_px: float = 200.0, pad: float = 1.5, n_bins: int = 16, sigma: float = 1.0,
                 canny_low: float = 5.0, canny_high: float = 12.0, margin: float = 0.04,
-                margin_px: float = 3.0, detector: str = "canny", linear: bool = False) -> PhotoEdges:
+                margin_px: float = 3.0, detector: str = "canny", linear: bool = False,
+                sil_inset: float = 0.0) -> PhotoEdges:
     """Edges of the photo around ``box_xyxy`` (x0, y0, x1, y1), resampled so the box's longer side is ``object_px``.
 
     Parameters
@@ -161,6 +166,8 @@ def photo_edges(image: np.ndarray, K: np.ndarray, box_xyxy: np.ndarray, mask: np
         sub-pixel position come from the colour gradient in both cases.
     linear : each edge's position is the nearest peak of the *linear-light* gradient along its gradient direction
         (within 1.5 photo px, :func:`_linear_light_peaks`): the sRGB curve moves an encoded edge towards the darker side
+    sil_inset : photo px by which the photo's silhouette edges lie inside the geometric outline (kept on the result,
+        :attr:`PhotoEdges.sil_inset`; ``config.align.silhouette_inset_px``)
     """
     if detector not in DETECTORS:
         raise ValueError(f"photo_edges: detector must be one of {DETECTORS}, got {detector!r}")
@@ -230,7 +237,7 @@ def photo_edges(image: np.ndarray, K: np.ndarray, box_xyxy: np.ndarray, mask: np
     return PhotoEdges(crop=crop, K=Kc, size=size, scale=s, n_bins=n_bins, dist=dist, nearest=nearest, index=index,
                       edge_xy=exy, edge_dir=g, edge_bin=eb, allowed=allowed, box=box_c, valid=valid,
                       box_sides=np.concatenate([_to_crop(crop, box[:2] - 0.5), _to_crop(crop, box[2:] - 0.5)]),
-                      colour=colour_index(crop.image))
+                      colour=colour_index(crop.image), sil_inset=float(sil_inset))
 
 
 def _edpf(image: np.ndarray) -> np.ndarray:

@@ -660,8 +660,7 @@ class PoseEstimator:
                                             "extra_search": float(search != ac.search)}
             new.append(nh)
         for h in starts:
-            h.terms.update(edge_fit(ren, pe, h.T_cam_from_obj, fit_px=ac.fit_px, region=True,
-                                    sil_inset=ac.silhouette_inset_px).as_dict())
+            h.terms.update(edge_fit(ren, pe, h.T_cam_from_obj, fit_px=ac.fit_px, region=True).as_dict())
         cands = starts + new
         for h in cands:
             if self._shape is not None and q.edges is not None:

@@ -186,8 +186,7 @@ def proposal_terms(est, image: np.ndarray, K: np.ndarray, p: Proposal, res: Pose
         x.update(full_fit=0.0, full_silhouette=0.0, full_visible=0.0)
         return x
     ac = est.cfg.align
-    f = edge_fit(est.object_renderer(), photo_edges(image, K, own, **photo_edges_kwargs(ac)), T, fit_px=ac.fit_px,
-                 sil_inset=ac.silhouette_inset_px)
+    f = edge_fit(est.object_renderer(), photo_edges(image, K, own, **photo_edges_kwargs(ac)), T, fit_px=ac.fit_px)
     x.update(full_fit=f.share, full_silhouette=f.silhouette_share, full_visible=f.visible)
     return x
 

@@ -173,11 +173,14 @@ def plate_renderer() -> Renderer:
 
 def align_trials(mesh, renderer: Renderer, align_kw: dict, n: int = 12, plate: Renderer | None = None,
                  deg: float = 10.0, dz: float = 0.05, shift_px: float = 3.0,
-                 coarse_ac=None) -> list[tuple[float, float]]:
+                 coarse_ac=None, photo_kw: dict | None = None) -> list[tuple[float, float]]:
     """Edge alignment from a turned start on ``n`` seeded photos of ``mesh`` (3.5 diameters away, up to 60 px off
     centre); with ``plate`` a plate 60 mm in front of the part, shifted sideways to cover about half of it; with
     ``coarse_ac`` (a ``config.align`` whose ``coarse_px`` > 0) the first scales run on a coarse crop as the estimator
-    runs them. Returns (rotation error in degrees, relative depth error) per trial."""
+    runs them; ``photo_kw``: keywords of :func:`photo_edges` (``edge_align.photo_edges_kwargs`` of a ``config.align``:
+    the silhouette inset, the edge detector; None = its defaults). Returns (rotation error in degrees, relative depth
+    error) per trial."""
+    pkw = dict(photo_kw or {})
     out = []
     for seed in range(n):
         T = facing_pose(mesh, np.random.default_rng(100 + seed), 3.5, 60.0, K_ALIGN)
@@ -192,7 +195,7 @@ def align_trials(mesh, renderer: Renderer, align_kw: dict, n: int = 12, plate: R
         T0 = turned_pose(T, K_ALIGN, mesh.center, deg, dz, shift_px, rng)
         kw = dict(align_kw)
         if coarse_ac is not None and coarse_levels(coarse_ac):
-            kw |= coarse_kwargs(coarse_ac, photo_edges(img, K_ALIGN, box, object_px=coarse_ac.coarse_px))
-        Ta = align(renderer, photo_edges(img, K_ALIGN, box), T0, hull=mesh.hull_vertices, **kw).T_cam_from_obj
+            kw |= coarse_kwargs(coarse_ac, photo_edges(img, K_ALIGN, box, **(pkw | {"object_px": coarse_ac.coarse_px})))
+        Ta = align(renderer, photo_edges(img, K_ALIGN, box, **pkw), T0, hull=mesh.hull_vertices, **kw).T_cam_from_obj
         out.append((rotation_angle_deg(Ta[:3, :3], T[:3, :3]), abs(Ta[2, 3] - T[2, 3]) / T[2, 3]))
     return out
