@@ -88,6 +88,14 @@ def auc(score: np.ndarray, label: np.ndarray) -> float:
     return float((ranks[: len(pos)].sum() - len(pos) * (len(pos) + 1) / 2) / (len(pos) * len(neg)))
 
 
+def auc_interval(score: np.ndarray, label: np.ndarray, n: int = 1000, seed: int = 0) -> tuple[float, float]:
+    """95 % bootstrap interval of :func:`auc` (targets resampled with replacement, ``n`` times, seeded)."""
+    rng = np.random.default_rng(seed)
+    vals = [auc(score[i], label[i]) for i in (rng.integers(0, len(score), len(score)) for _ in range(n))]
+    lo, hi = np.nanpercentile(vals, [2.5, 97.5])
+    return float(lo), float(hi)
+
+
 def logistic_fit(X: np.ndarray, y: np.ndarray, l2: float = 1e-3, iters: int = 50) -> np.ndarray:
     A = np.concatenate([np.ones((len(X), 1)), X], 1)
     w = np.zeros(A.shape[1])
@@ -205,15 +213,16 @@ def main(argv=None) -> int:
             break
         chosen, best_cv = chosen + [k], a
         print(f"  + {k}: fitting-half 5-fold AUC {a:.3f}")
-    print("| terms | AUC report half | coefficients (intercept first) |")
-    print("|---|---|---|")
+    print("| terms | AUC report half | 95 % interval | coefficients (intercept first) |")
+    print("|---|---|---|---|")
     models = {}
     shipped_terms = list(AlignConfig().confidence_terms)
     for ks in (["fit", "margin"], shipped_terms, chosen):
         coef = fit_raw(xf, yf, ks)
         pt = predict(xt, ks, coef)
-        models[",".join(ks)] = {"terms": ks, "coef": coef, "auc_report_half": auc(pt, yt)}
-        print(f"| {', '.join(ks)} | {auc(pt, yt):.3f} | {[round(c, 3) for c in coef]} |")
+        ci = auc_interval(pt, yt)
+        models[",".join(ks)] = {"terms": ks, "coef": coef, "auc_report_half": auc(pt, yt), "auc_interval": ci}
+        print(f"| {', '.join(ks)} | {auc(pt, yt):.3f} | {ci[0]:.2f}-{ci[1]:.2f} | {[round(c, 3) for c in coef]} |")
     for k in names:
         print(f"  {k} alone: AUC report half {auc(np.array([x[k] for x in xt]), yt):.3f}")
     if args.current:

@@ -395,9 +395,10 @@ class AlignConfig(_Section):
     # LM-O 716: no weight beats 0 on both halves, with or without extra_search (bench/RESULTS.md, session 25)
     w_support: float = 0.0
     # calibrated confidence = logistic(c0 + c1 * term1 + ...) of the chosen pose over confidence_terms (CONFIDENCE_TERMS;
-    # size = projected diameter / 100 px, clipped), fitted by bench/lmo_select.py on the even half of s14_full716: AUC
-    # 0.806 on the odd half (bench/RESULTS.md "Session 14"); [] = the uncalibrated ratio
-    confidence: list[float] = field(default_factory=lambda: [-6.437, 5.451, 2.03, 4.274])
+    # size = projected diameter / 100 px, clipped), refitted by bench/lmo_select.py on the even half of the current
+    # default's LM-O 716 poses (session 27's run): AUC 0.840 (0.80-0.88) on the odd half, reliable per bin (the session-14
+    # fit said 0.4-0.6 for poses right 71 % of the time); bench/RESULTS.md "Session 28"; [] = the uncalibrated ratio
+    confidence: list[float] = field(default_factory=lambda: [-5.641, 4.612, 1.955, 5.79])
     confidence_terms: list[str] = field(default_factory=lambda: ["fit", "size", "margin"])
     min_fit: float = 0.05  # a chosen pose with less aligned fit than this is flagged failed ("no edge support")
     prior_margin: float = 0.25  # estimate_from_prior without a box: the prior's box grown by this share of its size
