@@ -41,6 +41,7 @@ from common import DEFAULT_DATASET  # noqa: E402  (bench/common.py: puts src/ on
 
 from pixie.config import CONFIDENCE_TERMS, AlignConfig  # noqa: E402
 from pixie.cues.edge_align import confidence_size  # noqa: E402
+from pixie.geometry.camera import rotation_angle_deg  # noqa: E402
 
 GRID = (0.0, 0.25, 0.5, 1.0, 2.0, 4.0, 8.0)
 
@@ -48,11 +49,6 @@ GRID = (0.0, 0.25, 0.5, 1.0, 2.0, 4.0, 8.0)
 def load(path: Path) -> list[dict]:
     recs = [json.loads(line) for line in path.read_text().splitlines() if line.strip()]
     return [r for r in recs if r.get("cands")]
-
-
-def _rot_deg(A: np.ndarray, B: np.ndarray) -> float:
-    c = (np.trace(np.asarray(A)[:3, :3] @ np.asarray(B)[:3, :3].T) - 1.0) / 2.0
-    return float(np.degrees(np.arccos(np.clip(c, -1.0, 1.0))))
 
 
 def load_dumps(paths: list[Path], variant: str) -> list[dict]:
@@ -65,7 +61,7 @@ def load_dumps(paths: list[Path], variant: str) -> list[dict]:
             c = r["cands"]
             if not c:
                 continue
-            hyps = [c[0]] + [h for h in c[1:] if _rot_deg(h["T"], c[0]["T"]) > 10.0][:1]
+            hyps = [c[0]] + [h for h in c[1:] if rotation_angle_deg(h["T"][:3, :3], c[0]["T"][:3, :3]) > 10.0][:1]
             out.append({"target": r["target"], "obj_id": int(r["target"][2]), "cands": c, "hyps": hyps,
                         "add_ok": bool(c[0]["add_ok"]), "T": np.asarray(c[0]["T"])})
     return out
