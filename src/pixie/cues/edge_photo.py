@@ -46,8 +46,9 @@ class PhotoEdges:
     valid : (size, size) bool, crop pixels inside the photo
     colour : (size, size) int32 joint RGB bin of each crop pixel (:func:`pixie.region.colour_index`)
     sil_inset : photo px by which this photo's silhouette edges lie inside the object's geometric outline (blur, and
-        shading that falls off towards a curved outline); the model's silhouette points are moved inwards by as much
-        wherever they are compared with these edges (:func:`pixie.cues.edge_align.silhouette_outset`)
+        shading that falls off towards a curved outline); the alignment and the aligned fit move the model's
+        silhouette points inwards by as much (:func:`pixie.cues.edge_align.silhouette_outset`; the part report's
+        contour pixels are not moved)
     """
 
     crop: QueryCrop
