@@ -93,11 +93,17 @@ def _subpixel(mag: np.ndarray, ys: np.ndarray, xs: np.ndarray, dx: np.ndarray, d
     sx, sy = np.rint(dx).astype(int), np.rint(dy).astype(int)
     x1, y1 = np.clip(xs + sx, 0, W - 1), np.clip(ys + sy, 0, H - 1)
     x0, y0 = np.clip(xs - sx, 0, W - 1), np.clip(ys - sy, 0, H - 1)
-    m0, m1, mc = mag[y0, x0], mag[y1, x1], mag[ys, xs]
-    den = m0 - 2 * mc + m1
-    off = np.where(np.abs(den) > 1e-6, 0.5 * (m0 - m1) / np.where(np.abs(den) > 1e-6, den, 1.0), 0.0)
     step = np.hypot(sx, sy)  # 1 or sqrt(2) px between the samples
-    return np.clip(off, -0.5, 0.5) * step
+    return _parabola_vertex(mag[y0, x0], mag[ys, xs], mag[y1, x1]) * step
+
+
+def _parabola_vertex(m0: np.ndarray, mc: np.ndarray, m1: np.ndarray, ok: np.ndarray | bool = True,
+                     eps: float = 1e-6) -> np.ndarray:
+    """Vertex of the parabola through samples ``m0, mc, m1`` (one step apart), in steps from ``mc``, clipped to
+    [-0.5, 0.5]; 0 where not ``ok`` or the parabola is flat (|curvature| <= ``eps``)."""
+    den = m0 - 2 * mc + m1
+    ok = ok & (np.abs(den) > eps)
+    return np.clip(np.where(ok, 0.5 * (m0 - m1) / np.where(ok, den, 1.0), 0.0), -0.5, 0.5)
 
 
 def _srgb_to_linear(image: np.ndarray) -> np.ndarray:
@@ -135,11 +141,8 @@ def _linear_light_peaks(lin: np.ndarray, sigma: float, exy: np.ndarray, g: np.nd
             break
         k = np.where(ok, nxt, k)
     km, kp = np.clip(k - 1, 0, 2 * n), np.clip(k + 1, 0, 2 * n)
-    m0, mc, m1 = m[rows, km], m[rows, k], m[rows, kp]
-    den = m0 - 2 * mc + m1
-    inner = (k > 0) & (k < 2 * n) & (np.abs(den) > 1e-9)
-    v = np.where(inner, 0.5 * (m0 - m1) / np.where(inner, den, 1.0), 0.0)
-    return t[k] + np.clip(v, -0.5, 0.5) * step
+    inner = (k > 0) & (k < 2 * n)  # a peak at the end of the reach has no vertex
+    return t[k] + _parabola_vertex(m[rows, km], m[rows, k], m[rows, kp], inner, eps=1e-9) * step
 
 
 def photo_edges(image: np.ndarray, K: np.ndarray, box_xyxy: np.ndarray, mask: np.ndarray | None = None,
