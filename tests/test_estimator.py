@@ -97,6 +97,31 @@ def test_config_values_are_checked(proc_mesh, build_refs):
 
 
 @pytest.mark.slow
+def test_alignment_on_two_threads_gives_the_serial_candidates(query_est, query_results):
+    """The alignment stage aligns its starts on the process's threads (``pixie.threads.map_threads``): with torch at
+    two threads the ranked candidates (poses, scores, sources, terms) are those of one thread, bit for bit (the
+    stages before it run once, on one thread: torch's thread count may change the matcher's float sums)."""
+    import copy
+
+    from conftest import torch_threads
+
+    _, _, res, img, bbox = query_results[1]
+    q = query_est.prepare(img, K_Q, bbox)
+    corr = query_est.match(q)
+    q.background = background_similarity([c[2] for c in corr.values()])
+    hyps = query_est.shape_stage(q, query_est.select_views(q, query_est.solve(q, corr)), {})
+    out = {}
+    for n in (1, 2):
+        with torch_threads(n):
+            out[n] = query_est.align_stage(copy.copy(q), copy.deepcopy(hyps))
+    assert len(out[1]) == len(out[2]) and sum(h.source in ("aligned", "flip") for h in out[2]) >= 4
+    for a, b in zip(out[1], out[2]):
+        np.testing.assert_array_equal(a.T_cam_from_obj, b.T_cam_from_obj)
+        assert (a.score, a.source) == (b.score, b.source)
+        np.testing.assert_equal(a.terms, b.terms)  # NaN terms (no crease points) count as equal
+
+
+@pytest.mark.slow
 def test_extra_search_aligns_every_start_twice_and_keeps_both(query_est, query_results):
     """``align.extra_search``: each alignment job also runs with the second correspondence search; both poses join
     the ranked pool (term ``extra_search`` 0 / 1) with their aligned fit and support (support >= edge fit)."""

@@ -66,6 +66,9 @@ class Renderer:
         # Plane of each face: n . x = offset (float64, for exact hit points).
         self._offset = np.einsum("ij,ij->i", self._fn, mesh.vertices[mesh.faces[:, 0]])
         self._cn32 = mesh.corner_normals(crease_deg).astype(np.float32) if smooth_normals else None
+        # Embree commits (builds the BVH of) a scene on its first ray query; one ray now, so that renders from several
+        # threads at once (pixie.threads.map_threads) never race on that first commit.
+        self._scene.run(np.zeros((1, 3), np.float32), np.array([[0.0, 0.0, 1.0]], np.float32), output=1)
 
     def render(
         self,

@@ -75,6 +75,7 @@ from pixie.cues.parts import (complement_renderers, judge_parts, part_renderers,
                               robust_part_fit)
 from pixie.cues.shape import fused_score, shape_cues
 from pixie.pose.results import NO_BOX_MESSAGE, Hypothesis, PoseResult, set_confidences
+from pixie.threads import map_threads
 from pixie.references.views import roll_angles
 
 log = logging.getLogger(__name__)
@@ -646,10 +647,17 @@ class PoseEstimator:
         for h in starts[: ac.flips]:
             jobs += [(h, T, "flip") for T in flip_twins(h.T_cam_from_obj, self.refs.mesh.center)]
         searches = [ac.search] + ([ac.extra_search] if ac.extra_search not in ("none", ac.search) else [])
-        new: list[Hypothesis] = []
-        for (h, T0, src), search in [(j, s_) for s_ in searches for j in jobs]:
+        work = [(j, s_) for s_ in searches for j in jobs]
+
+        def run(item):
+            (h, T0, src), search = item
             sup = (h.support_uv, h.support_xyz) if src == "aligned" and h.support_uv is not None else None
-            res = align(ren, pe, T0, **(kw | {"search": search}), matches=sup)
+            return align(ren, pe, T0, **(kw | {"search": search}), matches=sup)
+
+        # the starts are independent: aligned by the process's threads at once (the same poses with any count)
+        results = map_threads(run, work)
+        new: list[Hypothesis] = []
+        for ((h, T0, src), search), res in zip(work, results):
             T = res.T_cam_from_obj
             ms = h.match_score if src == "aligned" else 0.0  # a twin has no matcher support of its own
             nh = Hypothesis(T_cam_from_obj=T, score=0.0, match_score=ms, n_inliers=h.n_inliers if src == "aligned" else 0,
@@ -659,8 +667,9 @@ class PoseEstimator:
             nh.terms = res.fit.as_dict() | {"align_iterations": float(res.iterations),
                                             "extra_search": float(search != ac.search)}
             new.append(nh)
-        for h in starts:
-            h.terms.update(edge_fit(ren, pe, h.T_cam_from_obj, fit_px=ac.fit_px, region=True).as_dict())
+        fits = map_threads(lambda h: edge_fit(ren, pe, h.T_cam_from_obj, fit_px=ac.fit_px, region=True), starts)
+        for h, fit in zip(starts, fits):
+            h.terms.update(fit.as_dict())
         cands = starts + new
         for h in cands:
             if self._shape is not None and q.edges is not None:
