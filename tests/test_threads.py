@@ -49,8 +49,9 @@ def test_renders_from_several_threads_equal_the_serial_renders(proc_mesh, K640, 
     from pixie.geometry.render import Renderer
 
     poses = [make_pose(proc_mesh, seed, distance_factor=3.0, offset_px=60) for seed in range(6)]
-    serial = [Renderer(proc_mesh).render(T, K640, 480, 640) for T in poses]
-    shared = Renderer(proc_mesh)
+    ren = Renderer(proc_mesh)
+    serial = [ren.render(T, K640, 480, 640) for T in poses]
+    shared = Renderer(proc_mesh)  # a second, fresh renderer: its first renders run on two threads at once
     threaded = map_threads(lambda T: shared.render(T, K640, 480, 640), poses, workers=2)
     for a, b in zip(serial, threaded):
         np.testing.assert_array_equal(a.depth, b.depth)
