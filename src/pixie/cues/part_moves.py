@@ -38,13 +38,15 @@ def _bin_pixel(xy: np.ndarray, ori: np.ndarray, shape: tuple[int, int], n_bins: 
     return b, y, x
 
 
-def near_maps(xy: np.ndarray, ori: np.ndarray, shape: tuple[int, int], n_bins: int = 8) -> np.ndarray:
-    """(n_bins, H, W) bool: a contour pixel of orientation bin b (or b ± 1) lies within 1 px (3 x 3)."""
+def near_maps(xy: np.ndarray, ori: np.ndarray, shape: tuple[int, int], n_bins: int = 8,
+              radius: int = 1) -> np.ndarray:
+    """(n_bins, H, W) bool: a contour pixel of orientation bin b (or b ± 1) lies within ``radius`` px (a square of
+    side 2 radius + 1)."""
     maps = np.zeros((n_bins,) + tuple(shape), np.uint8)
     if len(xy):
         maps[_bin_pixel(xy, ori, shape, n_bins)] = 1
-    k3 = np.ones((3, 3), np.uint8)
-    dil = np.stack([cv2.dilate(m, k3) for m in maps]).astype(bool)
+    k = np.ones((2 * radius + 1, 2 * radius + 1), np.uint8)
+    dil = np.stack([cv2.dilate(m, k) for m in maps]).astype(bool)
     return dil | np.roll(dil, 1, axis=0) | np.roll(dil, -1, axis=0)
 
 
