@@ -451,7 +451,6 @@ class PartsConfig(_Section):
     # alarms per correct assembly (mean recall 0.79), 3 -> 0.06 (0.76); cross-fit 0.74 @ 0.17 -> 0.77 @ 0.10; 2 and 5
     # worse (bench/RESULTS.md, session 30)
     contrast_px: int = 3
-    exclusive_px: int = 0  # the exclusive contour's radius alone (0: contrast_px)
     shift_frac: float = 0.12  # displaced-part search: slide the part's contour up to this share of the box's side
     min_points: int = 12  # fewer visible contour pixels: 'not visible'
     min_visible: float = 0.2  # less of the part in view (hidden by other parts, outside the box / mask): 'not visible'
@@ -487,7 +486,7 @@ RANGES.update({"parts.fit_px": (0, 100, False), "parts.shift_frac": (0, 1, True)
                "parts.min_visible": (0, 1, True), "parts.flag_below": (-10, 10, True), "parts.shift_gain": (0, None, True),
                "parts.found_shifted": (0, None, True), "parts.colour_weight": (0, 100, True), "parts.supported_above": (0, 100, True),
                "parts.colour_ab": (0, 300, False), "parts.step_frac": (0, 1, True),
-               "parts.detail_px": (0, 1000, True), "parts.contrast_px": (1, 20, True), "parts.exclusive_px": (0, 20, True),
+               "parts.detail_px": (0, 1000, True), "parts.contrast_px": (1, 20, True),
                "parts.revealed_weight": (0, 100, True), "parts.shift_weight": (0, 100, True),
                "parts.move_below": (0, 100, True), "parts.move_gain": (-1, 1, True), "parts.move_changed": (0, 10, True),
                "parts.move_px": (0, 1000, True)})

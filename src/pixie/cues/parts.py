@@ -113,7 +113,7 @@ def report_kwargs(pc: PartsConfig) -> tuple[dict, dict]:
     """The keywords of :func:`part_support` and of :func:`judge_parts` that ``config.parts`` sets."""
     support = dict(fit_px=pc.fit_px, shift_frac=pc.shift_frac, min_points=pc.min_points, colour_ab=pc.colour_ab,
                    step_frac=pc.step_frac, detail_px=pc.detail_px, contrast_px=pc.contrast_px,
-                   exclusive_px=pc.exclusive_px, kinds=tuple(PART_KINDS.index(k) for k in pc.kinds),
+                   kinds=tuple(PART_KINDS.index(k) for k in pc.kinds),
                    moves=pc.moves, min_visible=pc.min_visible, move_below=pc.move_below,
                    move_changed=pc.move_changed, move_px=pc.move_px, move_collide=pc.move_collide)
     judge = dict(flag_below=pc.flag_below, colour_weight=pc.colour_weight, revealed_weight=pc.revealed_weight,
@@ -207,7 +207,7 @@ def part_support(renderer: Renderer, face_parts: np.ndarray, part_names, pe: Pho
                  complements: list[tuple[Renderer, np.ndarray]] | None = None,
                  moves: bool = False, min_visible: float = 0.2, move_below: float = 0.9, move_changed: float = 0.3,
                  move_px: float = 4.0, move_collide: bool = True, solids: PartSolids | None = None,
-                 detail_px: float = 0.0, contrast_px: int = 1, exclusive_px: int = 0) -> list[PartSupport]:
+                 detail_px: float = 0.0, contrast_px: int = 1) -> list[PartSupport]:
     """Every part's support at pose ``T`` (verdicts not yet set: :func:`judge_parts`).
 
     Parameters
@@ -237,7 +237,6 @@ def part_support(renderer: Renderer, face_parts: np.ndarray, part_names, pe: Pho
         :func:`coarse_pixels`): the studs a missing brick uncovers, which the photo does not resolve
     contrast_px : a contour pixel of the model with the part (without it) belongs to the exclusive (revealed)
         contour only when the other model has no contour pixel of a like orientation within this many crop px
-    exclusive_px : the same radius for the exclusive contour alone (0: ``contrast_px``)
     """
     face_parts = np.asarray(face_parts)
     n_parts = len(part_names)
@@ -283,7 +282,7 @@ def part_support(renderer: Renderer, face_parts: np.ndarray, part_names, pe: Pho
             wk = np.isin(wkind, np.asarray(kinds))
             wxy, wori = wxy[wk], wori[wk]
             mine = coarse_pixels(xy, inside & ~explained(xy, ori, near_maps(wxy, wori, part_map.shape,
-                                                                             radius=exclusive_px or contrast_px)),
+                                                                             radius=contrast_px)),
                                  part_map.shape, detail_px)
             n_excl = int(mine.sum())
             excl = float(hit[mine].mean()) if n_excl else 0.0
