@@ -207,7 +207,7 @@ def part_support(renderer: Renderer, face_parts: np.ndarray, part_names, pe: Pho
                  complements: list[tuple[Renderer, np.ndarray]] | None = None,
                  moves: bool = False, min_visible: float = 0.2, move_below: float = 0.9, move_changed: float = 0.3,
                  move_px: float = 4.0, move_collide: bool = True, solids: PartSolids | None = None,
-                 detail_px: float = 0.0, contrast_px: int = 1) -> list[PartSupport]:
+                 detail_px: float = 0.0, contrast_px: int = 3) -> list[PartSupport]:
     """Every part's support at pose ``T`` (verdicts not yet set: :func:`judge_parts`).
 
     Parameters
