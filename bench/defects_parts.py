@@ -12,7 +12,7 @@ With ``--mask`` the report runs inside the GT visible mask (the estimates stay t
 
 Thresholds (``config.parts.flag_below``, ``colour_weight``): chosen on the *fitting half* (even image ids, i.e.
 viewpoints 0 and 2 of every scene) on a grid, as the pair with the best mean recall of the defective part over the
-missing / shifted / rotated / wrong scenes among those with <= 0.1 false alarms per correct assembly, at the
+missing / shifted / rotated / wrong scenes among those with <= ``--max-fa`` (0.1) false alarms per correct assembly, at the
 estimated poses; reported on the other half (odd image ids). The verdicts in the per-image records use the
 configured thresholds. The cross-fit applies the same rule on each half and judges every image with the other
 half's choice: a two-fold estimate over all images (48 correct assemblies, not 24), also restricted to the images
@@ -193,7 +193,7 @@ def table(rows: list[dict], cfg: PixieConfig, params, key: str = "parts") -> dic
 
 def choose_moves(rows: list[dict], cfg: PixieConfig, params: tuple, grid=MOVE_GRID, max_fa: float = 0.1) -> tuple:
     """``params`` (flag_below, colour_weight, revealed_weight, shift_weight) with the ``move_gain`` of ``grid`` that
-    gives the best mean recall over the part defects with <= 0.1 false alarms per correct assembly (ties to the
+    gives the best mean recall over the part defects with <= ``max_fa`` false alarms per correct assembly (ties to the
     fewer alarms, then to the larger threshold)."""
     best, key = tuple(params) + (float("inf"),), (-1.0, 0.0)
     for mg in sorted(grid, reverse=True):
