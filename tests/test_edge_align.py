@@ -6,6 +6,7 @@ from dataclasses import replace
 
 import cv2
 import numpy as np
+from scipy.spatial.transform import Rotation
 import pytest
 
 from pixie.config import CHOICES, PixieConfig
@@ -153,13 +154,23 @@ def test_visible_sides_recover_depth_when_one_side_is_occluded(part, make_pose):
     assert abs(Tb[2, 3] - Tv[2, 3]) / z < 0.002 and abs(Tv[2, 3] - z) / z < 0.002
 
 
-def test_flip_twins_turn_half_a_turn_about_the_object_centre(part, make_pose):
+@pytest.mark.parametrize("axes,n", [("camera", 2), ("object", 3), ("both", 5)])
+def test_flip_twins_turn_half_a_turn_about_the_object_centre(part, make_pose, axes, n):
     mesh, _ = part
     T = make_pose(mesh, 5, K=K)
     c = transform_points(T, mesh.center[None])[0]
-    for F in flip_twins(T, mesh.center):
+    twins = flip_twins(T, mesh.center, axes)
+    assert len(twins) == n
+    for F in twins:
         assert rotation_angle_deg(F[:3, :3], T[:3, :3]) == pytest.approx(180.0, abs=1e-6)
         np.testing.assert_allclose(transform_points(F, mesh.center[None])[0], c, atol=1e-9)
+        axis_cam = Rotation.from_matrix(F[:3, :3] @ T[:3, :3].T).as_rotvec()
+        axis_obj = T[:3, :3].T @ axis_cam / np.linalg.norm(axis_cam)  # the turn's axis in the object's frame
+        on_camera_axis = np.isclose(np.abs(axis_cam / np.linalg.norm(axis_cam))[:2], 1.0, atol=1e-6).any()
+        on_object_axis = np.isclose(np.abs(axis_obj), 1.0, atol=1e-6).any()
+        assert on_camera_axis if axes == "camera" else (on_object_axis if axes == "object" else on_camera_axis or on_object_axis)
+    with pytest.raises(ValueError, match="flip axes"):
+        flip_twins(T, mesh.center, "image")
 
 
 # ------------------------------------------------------------------------------------------ alignment

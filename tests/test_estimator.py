@@ -143,6 +143,32 @@ def test_extra_search_aligns_every_start_twice_and_keeps_both(query_est, query_r
 
 
 @pytest.mark.slow
+def test_object_axis_twins_and_the_silhouette_term_in_the_ranking(query_est, query_results):
+    """``align.flip_axes=object``: the best start's twins turn about the model's own three axes (three 'flip'
+    candidates, each 180° from that start's pose before alignment); ``align.w_silhouette``: every aligned
+    candidate's score is fused + w_fit x fit + w_silhouette x the silhouette points' fit, and the pool is ranked
+    by it."""
+    import copy
+
+    _, _, res, img, bbox = query_results[0]
+    est = copy.copy(query_est)
+    est.cfg = copy.deepcopy(query_est.cfg)
+    est.cfg.align.flip_axes, est.cfg.align.w_silhouette = "object", 0.5
+    q = est.prepare(img, K_Q, bbox)
+    corr = est.match(q)
+    q.background = background_similarity([c[2] for c in corr.values()])
+    hyps = est.shape_stage(q, est.select_views(q, est.solve(q, corr)), {})
+    out = est.align_stage(q, hyps)
+    assert sum(h.source == "flip" for h in out) == 3 * est.cfg.align.flips
+    ac = est.cfg.align
+    ranked = [h for h in out if "fit_silhouette" in h.terms]
+    for h in ranked:
+        want = h.terms["fused"] + ac.w_fit * h.terms["fit"] + ac.w_silhouette * h.terms["fit_silhouette"]
+        assert h.score == pytest.approx(want, abs=1e-12)
+    assert [h.score for h in ranked] == sorted((h.score for h in ranked), reverse=True)
+
+
+@pytest.mark.slow
 def test_coarse_crop_option_runs_the_first_scales_on_a_half_size_crop(query_est, query_results):
     """``align.coarse_px``: the estimator makes the coarse crop's edges once per query (the box at ``coarse_px``),
     passes them to every alignment with the first scales converted to their px, and the pose stays at the photo's

@@ -335,7 +335,12 @@ class AlignConfig(_Section):
 
     enabled: bool = True
     hypotheses: int = 4  # best distinct hypotheses aligned
-    flips: int = 1  # ... and the 180° flip twins (about the camera's x and y axes) of this many of them
+    flips: int = 1  # ... and the 180° flip twins of this many of them
+    # about which axes through the object's centre the twins turn: 'camera' (x, y: the outline mirrored), 'object'
+    # (the model's own x, y, z: a near-box-shaped part modelled on its axes looks almost the same turned about one of
+    # them) or 'both'. 'object', LM-O 716 on the same starts: 260 ADD(-S) hits / AR 0.496 against 261 / 0.499; defects
+    # benchmark 92.3 % ADD < 1 cm either way (2 flips fixed, 2 made): not the default (bench/RESULTS.md, session 32)
+    flip_axes: str = "camera"
     object_px: float = 200.0  # the box's longer side in the alignment crop, px
     # > 0: the first coarse_levels Tukey scales of schedule run on a second crop where the box spans coarse_px (the
     # scales converted to its px); its renders have (coarse_px / object_px)^2 of the pixels. 0: every scale on one crop.
@@ -394,6 +399,10 @@ class AlignConfig(_Section):
     # a step of the colour region within fit_px (EdgeFit.support_share: evidence that does not favour the edge search)
     # LM-O 716: no weight beats 0 on both halves, with or without extra_search (bench/RESULTS.md, session 25)
     w_support: float = 0.0
+    # ... + w_silhouette * the aligned fit of the silhouette points alone (EdgeFit.silhouette_share). With object twins,
+    # 0.1-1.5 on LM-O 716: 260-264 hits (noise); the rule (LM-O half 0 + the defects benchmark's even ids) picks 0
+    # (bench/RESULTS.md, session 32)
+    w_silhouette: float = 0.0
     # calibrated confidence = logistic(c0 + c1 * term1 + ...) of the chosen pose over confidence_terms (CONFIDENCE_TERMS;
     # size = projected diameter / 100 px, clipped), refitted by bench/lmo_select.py on the even half of the current
     # default's LM-O 716 poses (session 27's run): AUC 0.840 (0.80-0.88) on the odd half, reliable per bin (the session-14
@@ -416,6 +425,7 @@ class AlignConfig(_Section):
 
 _SECTION_NAMES[AlignConfig] = "align"
 CHOICES["align.search"] = ("normal", "nearest", "region")
+CHOICES["align.flip_axes"] = ("camera", "object", "both")
 CHOICES["align.extra_search"] = ("none",) + CHOICES["align.search"]
 CHOICES["align.edge_detector"] = ("canny", "edpf")
 CHOICES["align.confidence_terms"] = CONFIDENCE_TERMS
@@ -424,7 +434,7 @@ RANGES.update({"align.region_snap": (0, 100, True), "align.min_contrast": (0, 1,
                "align.iters": (1, 100, True), "align.rerender": (1, 100, True), "align.crease_weight": (0, 10, True),
                "align.silhouette_inset_px": (-10, 10, True), "align.rot_prior": (0, None, True),
                "align.canny_low": (0, None, True), "align.canny_high": (0, None, True), "align.fit_px": (0, 100, False),
-               "align.w_fit": (0, None, True), "align.w_support": (0, None, True), "align.min_fit": (0, 1, True),
+               "align.w_fit": (0, None, True), "align.w_support": (0, None, True), "align.w_silhouette": (0, None, True), "align.min_fit": (0, 1, True),
                "align.w_matches": (0, None, True), "align.match_px": (0, 100, False),
                "align.prior_margin": (0, 4, True), "align.reset_fit": (0, 1, True),
                "align.reset_ratio": (0, 1, True)})

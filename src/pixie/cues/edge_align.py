@@ -51,7 +51,7 @@ from pixie.geometry.rotations import rodrigues
 from pixie.references.templates import CREASE, SILHOUETTE, view_points
 
 __all__ = ["PhotoEdges", "AlignResult", "EdgeFit", "photo_edges", "model_points", "align", "align_kwargs", "coarse_kwargs", "coarse_levels", "photo_edges_kwargs", "calibrated_confidence", "confidence_size", "edge_fit",
-           "edge_distances", "flip_twins", "silhouette_outset"]
+           "edge_distances", "flip_twins", "FLIP_AXES", "silhouette_outset"]
 
 
 @dataclass(kw_only=True)
@@ -696,11 +696,24 @@ def edge_fit(renderer: Renderer, pe: PhotoEdges, T: np.ndarray, n_points: int = 
 # ------------------------------------------------------------------------------------------ pool helpers
 
 
-def flip_twins(T: np.ndarray, center: np.ndarray) -> list[np.ndarray]:
-    """The pose turned 180° about the camera's x and y axes through the object's centre (silhouette flips)."""
-    c = T[:3, :3] @ center + T[:3, 3]
+FLIP_AXES = ("camera", "object", "both")
+
+
+def flip_twins(T: np.ndarray, center: np.ndarray, axes: str = "camera") -> list[np.ndarray]:
+    """The pose turned 180° about axes through the object's centre: the camera's x and y axes (``axes='camera'``:
+    silhouette flips, the outline mirrored), the object's own x, y and z axes (``'object'``: a near-box-shaped part
+    modelled on its axes looks almost the same turned about one of them), or all five (``'both'``)."""
+    if axes not in FLIP_AXES:
+        raise ValueError(f"flip axes must be one of {FLIP_AXES}, not {axes!r}")
+    R0 = np.asarray(T, np.float64)[:3, :3]
+    c = R0 @ center + T[:3, 3]
+    turns = []
+    if axes in ("camera", "both"):
+        turns += [(F, None) for F in (np.diag([1.0, -1.0, -1.0]), np.diag([-1.0, 1.0, -1.0]))]
+    if axes in ("object", "both"):
+        turns += [(None, F) for F in (np.diag([1.0, -1.0, -1.0]), np.diag([-1.0, 1.0, -1.0]), np.diag([-1.0, -1.0, 1.0]))]
     out = []
-    for F in (np.diag([1.0, -1.0, -1.0]), np.diag([-1.0, 1.0, -1.0])):
-        R = F @ T[:3, :3]
+    for cam, obj in turns:
+        R = cam @ R0 if cam is not None else R0 @ obj
         out.append(make_T(R, c - R @ center))
     return out

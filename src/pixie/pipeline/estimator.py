@@ -645,7 +645,7 @@ class PoseEstimator:
         starts = self.distinct(hyps, ac.hypotheses)
         jobs = [(h, h.T_cam_from_obj, "aligned") for h in starts]
         for h in starts[: ac.flips]:
-            jobs += [(h, T, "flip") for T in flip_twins(h.T_cam_from_obj, self.refs.mesh.center)]
+            jobs += [(h, T, "flip") for T in flip_twins(h.T_cam_from_obj, self.refs.mesh.center, ac.flip_axes)]
         searches = [ac.search] + ([ac.extra_search] if ac.extra_search not in ("none", ac.search) else [])
         work = [(j, s_) for s_ in searches for j in jobs]
 
@@ -681,7 +681,8 @@ class PoseEstimator:
                 h.fused = h.score if h.source != "flip" else 0.0
             h.fit = h.terms["fit"]
             h.terms["fused"] = h.fused
-            h.score = h.fused + ac.w_fit * h.fit + ac.w_support * h.terms["fit_support"]
+            h.score = (h.fused + ac.w_fit * h.fit + ac.w_support * h.terms["fit_support"]
+                       + ac.w_silhouette * h.terms["fit_silhouette"])
         cands = sorted(cands, key=lambda h: -h.score)
         floor = cands[-1].score if cands else 0.0
         rest = [h for h in hyps if all(h is not c for c in starts)]
