@@ -53,7 +53,8 @@ from pixie.geometry.render import Renderer
 from pixie.pose.results import SUSPECT_VERDICTS
 
 __all__ = ["VERDICTS", "PartSupport", "report_kwargs", "part_renderers", "complement_renderers", "part_support",
-           "part_score", "judge_parts", "robust_part_fit"]
+           "part_score", "judge_parts", "robust_part_fit",
+           "hidden_from_runner_up"]
 
 VERDICTS = ("present", "missing", "displaced", "not visible")
 
@@ -82,6 +83,7 @@ class PartSupport:
     move_support: float = 0.0  # the support of the moved part's own contour pixels (where it differs) at that move
     move_explained_by: int = -1  # another part whose move explains the same pixels better (explain_away), or -1
     verdict: str = ""
+    judged_at: str = ""  # 'runner-up': hidden at the chosen pose, judged at the runner-up pose (config.parts.alt_gap)
     uv: np.ndarray = field(default_factory=lambda: np.zeros((0, 2)), repr=False)  # its contour points, photo px
     hit: np.ndarray = field(default_factory=lambda: np.zeros(0, bool), repr=False)  # ... and which are supported
 
@@ -95,7 +97,7 @@ class PartSupport:
                 "revealed_support": round(self.revealed, 4), "n_revealed": self.n_revealed,
                 "exclusive_shifted_support": round(self.exclusive_shifted, 4),
                 "move_gain": round(self.move_gain, 4), "move": self.move, "move_support": round(self.move_support, 4),
-                "move_explained_by": self.move_explained_by}
+                "move_explained_by": self.move_explained_by, "judged_at": self.judged_at}
 
     @classmethod
     def from_dict(cls, d: dict) -> "PartSupport":
@@ -106,7 +108,7 @@ class PartSupport:
                    n_exclusive=d.get("n_exclusive", 0), revealed=d.get("revealed_support", 0.0),
                    n_revealed=d.get("n_revealed", 0), exclusive_shifted=d.get("exclusive_shifted_support", 0.0),
                    move_gain=d.get("move_gain", 0.0), move=d.get("move", ""), move_support=d.get("move_support", 0.0),
-                   move_explained_by=d.get("move_explained_by", -1))
+                   move_explained_by=d.get("move_explained_by", -1), judged_at=d.get("judged_at", ""))
 
 
 def report_kwargs(pc: PartsConfig) -> tuple[dict, dict]:
@@ -432,3 +434,14 @@ def robust_part_fit(renderer: Renderer, face_parts: np.ndarray, part_names, pe: 
     if kept_median(ps2) >= kept_median(ps):
         return res.T_cam_from_obj, ps2, drop
     return np.asarray(T, np.float64), ps, []
+
+
+def hidden_from_runner_up(parts: list[PartSupport], runner_up: list[PartSupport]) -> list[PartSupport]:
+    """Each part judged ``not visible`` in ``parts`` (the report at the chosen pose) that the report at the runner-up
+    pose (``runner_up``, same parts) flags missing or displaced takes that verdict, marked ``judged_at='runner-up'``
+    (in place; returns ``parts``). The caller decides when the runner-up is a near-equal alternative (a flip of a
+    near-symmetric assembly, whose hidden side is where the defect may be)."""
+    for p, a in zip(parts, runner_up):
+        if p.verdict == "not visible" and a.verdict in SUSPECT_VERDICTS:
+            p.verdict, p.judged_at = a.verdict, "runner-up"
+    return parts

@@ -71,8 +71,8 @@ from pixie.geometry.render import Renderer
 from pixie.cues.edge_align import (align, align_kwargs, calibrated_confidence, coarse_kwargs, coarse_levels,
                                    confidence_size, edge_fit, flip_twins, photo_edges, photo_edges_kwargs)
 from pixie.cues.edges import EdgeQuery
-from pixie.cues.parts import (complement_renderers, judge_parts, part_renderers, part_support, report_kwargs,
-                              robust_part_fit)
+from pixie.cues.parts import (complement_renderers, hidden_from_runner_up, judge_parts, part_renderers,
+                              part_support, report_kwargs, robust_part_fit)
 from pixie.cues.shape import fused_score, shape_cues
 from pixie.pose.results import NO_BOX_MESSAGE, Hypothesis, PoseResult, set_confidences
 from pixie.threads import map_threads
@@ -272,23 +272,41 @@ class PoseEstimator:
         if pc.moves and pc.move_collide and self._part_solids is None:
             self._part_solids = part_solids(mesh)
         support_kw, judge_kw = report_kwargs(pc)
-        if pc.robust:
-            if q.box_source == "prior":  # a grown search region, not the object's sides
-                align_kw["w_box"] = 0.0
-            T, ps, dropped = robust_part_fit(ren, mesh.face_parts, mesh.part_names, q.photo_edges, res.T_cam_from_obj,
-                                             align_kw=align_kw, support_kw=support_kw, judge_kw=judge_kw,
-                                             renderers=self._part_renderers, complements=self._part_complements,
-                                             solids=self._part_solids)
-            if dropped:
-                res.T_cam_from_obj = T
-                res.settings["parts_realigned_without"] = [mesh.part_names[k] for k in dropped]
-        else:
-            ps = judge_parts(part_support(ren, mesh.face_parts, mesh.part_names, q.photo_edges, res.T_cam_from_obj,
-                                          renderers=self._part_renderers, complements=self._part_complements,
-                                          solids=self._part_solids, **support_kw), **judge_kw)
+        if pc.robust and q.box_source == "prior":  # a grown search region, not the object's sides
+            align_kw["w_box"] = 0.0
+
+        def report(T: np.ndarray) -> tuple[np.ndarray, list, list[int]]:
+            if pc.robust:
+                return robust_part_fit(ren, mesh.face_parts, mesh.part_names, q.photo_edges, T, align_kw=align_kw,
+                                       support_kw=support_kw, judge_kw=judge_kw, renderers=self._part_renderers,
+                                       complements=self._part_complements, solids=self._part_solids)
+            return T, judge_parts(part_support(ren, mesh.face_parts, mesh.part_names, q.photo_edges, T,
+                                               renderers=self._part_renderers, complements=self._part_complements,
+                                               solids=self._part_solids, **support_kw), **judge_kw), []
+
+        T0 = res.T_cam_from_obj
+        T, ps, dropped = report(T0)
+        if dropped:
+            res.T_cam_from_obj = T
+            res.settings["parts_realigned_without"] = [mesh.part_names[k] for k in dropped]
+        alt = self.runner_up(res, T0)
+        if alt is not None and any(p.verdict == "not visible" for p in ps):
+            hidden_from_runner_up(ps, report(alt.T_cam_from_obj)[1])
         res.part_support, res.parts = ps, [p.as_dict() for p in ps]
         res.timings["parts"] = time.perf_counter() - t
         return res
+
+    def runner_up(self, res: PoseResult, T: np.ndarray) -> Hypothesis | None:
+        """The result's best distinct alternative when it is a near-equal flip of the chosen pose ``T`` (turned at
+        least ``parts.alt_min_deg`` and scoring within ``parts.alt_gap`` of it), else None."""
+        pc = self.cfg.parts
+        if pc.alt_gap <= 0 or len(res.hypotheses) < 2:
+            return None
+        alt = res.hypotheses[1]
+        if (res.score - alt.score <= pc.alt_gap
+                and rotation_angle_deg(alt.T_cam_from_obj[:3, :3], T[:3, :3]) >= pc.alt_min_deg):
+            return alt
+        return None
 
     def estimate_from_prior(self, image: np.ndarray, K: np.ndarray, T_init: np.ndarray, bbox=None,
                             mask: np.ndarray | None = None, margin: float | None = None) -> PoseResult:
