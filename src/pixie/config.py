@@ -425,7 +425,8 @@ class AlignConfig(_Section):
 
 _SECTION_NAMES[AlignConfig] = "align"
 CHOICES["align.search"] = ("normal", "nearest", "region")
-CHOICES["align.flip_axes"] = ("camera", "object", "both")
+FLIP_AXES = ("camera", "object", "both")  # pixie.cues.edge_align.flip_twins: about which axes the twins turn
+CHOICES["align.flip_axes"] = FLIP_AXES
 CHOICES["align.extra_search"] = ("none",) + CHOICES["align.search"]
 CHOICES["align.edge_detector"] = ("canny", "edpf")
 CHOICES["align.confidence_terms"] = CONFIDENCE_TERMS

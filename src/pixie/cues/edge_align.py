@@ -44,6 +44,7 @@ import numpy as np
 
 from pixie.cues.edge_photo import PhotoEdges, photo_edges
 from pixie.cues.region import band, posterior
+from pixie.config import FLIP_AXES
 from pixie.errors import ConfigError
 from pixie.geometry.camera import make_T
 from pixie.geometry.render import Renderer
@@ -51,7 +52,7 @@ from pixie.geometry.rotations import rodrigues
 from pixie.references.templates import CREASE, SILHOUETTE, view_points
 
 __all__ = ["PhotoEdges", "AlignResult", "EdgeFit", "photo_edges", "model_points", "align", "align_kwargs", "coarse_kwargs", "coarse_levels", "photo_edges_kwargs", "calibrated_confidence", "confidence_size", "edge_fit",
-           "edge_distances", "flip_twins", "FLIP_AXES", "silhouette_outset"]
+           "edge_distances", "flip_twins", "silhouette_outset"]
 
 
 @dataclass(kw_only=True)
@@ -696,9 +697,6 @@ def edge_fit(renderer: Renderer, pe: PhotoEdges, T: np.ndarray, n_points: int = 
 # ------------------------------------------------------------------------------------------ pool helpers
 
 
-FLIP_AXES = ("camera", "object", "both")
-
-
 def flip_twins(T: np.ndarray, center: np.ndarray, axes: str = "camera") -> list[np.ndarray]:
     """The pose turned 180° about axes through the object's centre: the camera's x and y axes (``axes='camera'``:
     silhouette flips, the outline mirrored), the object's own x, y and z axes (``'object'``: a near-box-shaped part
@@ -707,13 +705,7 @@ def flip_twins(T: np.ndarray, center: np.ndarray, axes: str = "camera") -> list[
         raise ValueError(f"flip axes must be one of {FLIP_AXES}, not {axes!r}")
     R0 = np.asarray(T, np.float64)[:3, :3]
     c = R0 @ center + T[:3, 3]
-    turns = []
-    if axes in ("camera", "both"):
-        turns += [(F, None) for F in (np.diag([1.0, -1.0, -1.0]), np.diag([-1.0, 1.0, -1.0]))]
-    if axes in ("object", "both"):
-        turns += [(None, F) for F in (np.diag([1.0, -1.0, -1.0]), np.diag([-1.0, 1.0, -1.0]), np.diag([-1.0, -1.0, 1.0]))]
-    out = []
-    for cam, obj in turns:
-        R = cam @ R0 if cam is not None else R0 @ obj
-        out.append(make_T(R, c - R @ center))
-    return out
+    halves = [np.diag(d) for d in ([1.0, -1.0, -1.0], [-1.0, 1.0, -1.0], [-1.0, -1.0, 1.0])]  # about x, y, z
+    Rs = [F @ R0 for F in halves[:2]] if axes in ("camera", "both") else []  # the camera's axes act on the left
+    Rs += [R0 @ F for F in halves] if axes in ("object", "both") else []  # the model's own axes on the right
+    return [make_T(R, c - R @ center) for R in Rs]
