@@ -192,14 +192,19 @@ def estimate_all(name: str, ds: BopDataset, variants: dict[int, dict], cfg: Pixi
                 K = ds.camera(tg.scene_id, tg.im_id).K
                 est = models.estimator(model, cfg)  # builds references on first use: not timed
                 t0 = time.perf_counter()
+                alt = None
                 try:
                     r = est.estimate(img, K, bbox=inst.box_visib)
                     T, score, failed, msg = r.T_cam_from_obj, float(r.score), bool(r.failed), r.message
+                    if len(r.hypotheses) > 1:  # the runner-up (best distinct alternative): parts.alt_gap's pose
+                        alt = r.hypotheses[1]
                 except PixieError as exc:
                     T, score, failed, msg = None, 0.0, True, f"{type(exc).__name__}: {exc}"
                 rec = dict(key=key, scene_id=tg.scene_id, im_id=tg.im_id, obj_id=tg.obj_id,
                            T=None if T is None else np.asarray(T).tolist(), score=score, failed=failed,
-                           message=msg, time=time.perf_counter() - t0)
+                           message=msg, time=time.perf_counter() - t0,
+                           runner_up_T=None if alt is None else np.asarray(alt.T_cam_from_obj).tolist(),
+                           runner_up_score=None if alt is None else float(alt.score))
             cache.append(rec)
         rec = dict(cache.get(key))
         rec["model"] = str(model.relative_to(root))

@@ -42,9 +42,9 @@ sys.path.insert(0, str(REPO / "src"))
 sys.path.insert(0, str(REPO / "bench"))
 
 from pixie.config import PixieConfig  # noqa: E402
-from pixie.cues.edge_align import align_kwargs, photo_edges, photo_edges_kwargs  # noqa: E402
-from pixie.cues.parts import (PartSupport, complement_renderers, judge_parts, part_renderers, part_support, report_kwargs,  # noqa: E402
-                              robust_part_fit)
+from pixie.cues.edge_align import align_kwargs, edge_fit, photo_edges, photo_edges_kwargs  # noqa: E402
+from pixie.cues.parts import (PartSupport, complement_renderers, hidden_from_runner_up, judge_parts, part_renderers,  # noqa: E402
+                              part_support, report_kwargs, robust_part_fit)
 from pixie.eval import pose_error as M  # noqa: E402
 from pixie.eval.datasets import BopDataset  # noqa: E402
 from pixie.geometry.collide import part_solids  # noqa: E402
@@ -56,6 +56,7 @@ COLOUR_GRID = [0.0, 0.5, 1.0, 1.5, 2.0, 3.0]
 REVEALED_GRID = [0.0, 0.5, 1.0, 1.5, 2.0]  # 0: the session-10 score (no contrast with the model without the part)
 SHIFT_GRID = [0.0, 0.5, 1.0]  # weight of the shift search's gain in the score
 MOVE_GRID = [0.1, 0.15, 0.2, 0.25, 0.3, 0.35, 0.4, 0.5, 0.6, float("inf")]  # parts.move_gain (inf: no 3D moves)
+ALT_GRID = [0.0, 0.05, 0.1, 0.15, 0.2, 0.25, 0.3, 0.4, 0.5]  # parts.alt_gap (0: no runner-up)
 PART_DEFECTS = ("missing", "shifted", "rotated", "wrong")
 
 
@@ -135,7 +136,20 @@ def analyse(data: Path, ests: dict, cfg: PixieConfig, echo=print, use_mask: bool
             rec.update(add_mm=float(M.add(T, inst.T_cam_from_obj, phys_pts[str(phys)])),
                        add_robust_mm=float(M.add(Tr, inst.T_cam_from_obj, phys_pts[str(phys)])),
                        rot_deg=float(M.rotation_error_deg(T, inst.T_cam_from_obj)),
-                       dropped=dropped, parts=[p.as_dict() for p in ps])
+                       dropped=dropped, parts=[p.as_dict() for p in ps], T=T.tolist(), T_robust=Tr.tolist(),
+                       score=float(est.get("score", 0.0)),
+                       pose_fit=edge_fit(ren, pe, T, fit_px=ac.fit_px).as_dict())
+            if est.get("runner_up_T") is not None:  # the runner-up (parts.alt_gap): judged when it is a flip
+                Ta = np.asarray(est["runner_up_T"], np.float64)
+                rec.update(alt_gap=float(est["score"]) - float(est["runner_up_score"]),
+                           alt_deg=float(M.rotation_error_deg(Ta, T)),
+                           alt_add_mm=float(M.add(Ta, inst.T_cam_from_obj, phys_pts[str(phys)])))
+                if rec["alt_deg"] >= cfg.parts.alt_min_deg:
+                    _, pa, _ = robust_part_fit(ren, mesh.face_parts, mesh.part_names, pe, Ta, renderers=prs,
+                                               complements=comps, solids=solids,
+                                               align_kw=dict(hull=mesh.hull_vertices, **align_kw),
+                                               support_kw=support_kw, judge_kw=judge_kw)
+                    rec["parts_alt"] = [p.as_dict() for p in pa]
         rec["seconds"] = time.perf_counter() - t
         gt = judge_parts(part_support(ren, mesh.face_parts, mesh.part_names, pe, inst.T_cam_from_obj, renderers=prs,
                                       complements=comps, solids=solids,
@@ -150,9 +164,25 @@ def analyse(data: Path, ests: dict, cfg: PixieConfig, echo=print, use_mask: bool
 def rejudge(parts: list[dict], cfg: PixieConfig, params: tuple) -> list[str]:
     """Verdicts of stored part records under other (flag_below, colour_weight, revealed_weight, shift_weight[,
     move_gain]) (:func:`judge_parts` on the records)."""
-    _, judge, _ = _kw(cfg, *params)
-    ps = [PartSupport.from_dict(p) for p in parts]
-    return [p.verdict for p in judge_parts(ps, **judge)]
+    return [p.verdict for p in _judged(parts, cfg, params)]
+
+
+def _judged(parts: list[dict], cfg: PixieConfig, params: tuple) -> list[PartSupport]:
+    _, judge, _ = _kw(cfg, *params[:5])
+    return judge_parts([PartSupport.from_dict(p) for p in parts], **judge)
+
+
+def row_verdicts(r: dict, cfg: PixieConfig, params: tuple, key: str = "parts") -> list[str]:
+    """The verdicts of row ``r``'s parts (``key``) under ``params`` (:func:`rejudge`). A sixth entry of ``params`` is
+    ``parts.alt_gap``: at the estimated pose, parts not visible take the runner-up's verdict when the runner-up is a
+    flip (``alt_deg`` >= ``parts.alt_min_deg``, its report stored as ``parts_alt``) scoring within that gap
+    (:func:`pixie.cues.parts.hidden_from_runner_up`, the estimator's rule)."""
+    ps = _judged(r[key], cfg, params)
+    gap = params[5] if len(params) > 5 else 0.0
+    if (key == "parts" and gap > 0 and "parts_alt" in r and r["alt_deg"] >= cfg.parts.alt_min_deg
+            and r["alt_gap"] <= gap):
+        hidden_from_runner_up(ps, _judged(r["parts_alt"], cfg, params))
+    return [p.verdict for p in ps]
 
 
 def table(rows: list[dict], cfg: PixieConfig, params, key: str = "parts") -> dict:
@@ -170,7 +200,7 @@ def table(rows: list[dict], cfg: PixieConfig, params, key: str = "parts") -> dic
             continue
         by.setdefault(r["defect"] or "none (correct assembly)", []).append(r)
     for d, rs in sorted(by.items()):
-        vs = [rejudge(r[key], cfg, of(r)) for r in rs]
+        vs = [row_verdicts(r, cfg, of(r), key) for r in rs]
         if d == "none (correct assembly)":
             fa = [sum(x in FLAG for x in v) for v in vs]
             out[d] = dict(n=len(rs), false_alarms_per_image=float(np.mean(fa)),
@@ -207,6 +237,23 @@ def choose_moves(rows: list[dict], cfg: PixieConfig, params: tuple, grid=MOVE_GR
     return best
 
 
+def choose_alt(rows: list[dict], cfg: PixieConfig, params: tuple, grid=ALT_GRID, max_fa: float = 0.1) -> tuple:
+    """``params`` (five entries, :func:`choose_moves`) with the ``parts.alt_gap`` of ``grid`` that gives the best mean
+    recall over the part defects with <= ``max_fa`` false alarms per correct assembly, ties to the fewer alarms; of
+    the gaps tied on both, the middle one (the middle of the plateau, not its edge)."""
+    scored = []
+    for g in grid:
+        t = table(rows, cfg, tuple(params[:5]) + (g,))
+        fa = t.get("none (correct assembly)", {}).get("false_alarms_per_image", 0.0)
+        if fa <= max_fa + 1e-9:
+            scored.append(((round(mean_recall(t), 9), -round(fa, 9)), g))
+    if not scored:
+        return tuple(params[:5]) + (0.0,)
+    top = max(k for k, _ in scored)
+    tied = sorted(g for k, g in scored if k == top)
+    return tuple(params[:5]) + (tied[(len(tied) - 1) // 2],)
+
+
 def choose(rows: list[dict], cfg: PixieConfig, colours=COLOUR_GRID, revealed=REVEALED_GRID,
            shifts=SHIFT_GRID, max_fa: float = 0.1) -> tuple:
     """(flag_below, colour_weight, revealed_weight, shift_weight) with the best mean recall over the part defects among those with
@@ -233,13 +280,14 @@ def half_of(r: dict) -> int:
 
 
 def cross_fit(rows: list[dict], cfg: PixieConfig, max_fa: float = 0.1) -> dict[int, tuple]:
-    """The rule (:func:`choose`, then :func:`choose_moves`) applied on each half: {half: its parameters}. Judging
+    """The rule (:func:`choose`, then :func:`choose_moves`, then :func:`choose_alt`) applied on each half: {half: its parameters}. Judging
     every image with the other half's choice gives a two-fold estimate over all images, twice the report half's
     (48 correct assemblies instead of 24), and shows how much the choice depends on which half it saw."""
     out = {}
     for h in (0, 1):
         sub = [r for r in rows if half_of(r) == h]
-        out[h] = choose_moves(sub, cfg, choose(sub, cfg, max_fa=max_fa), max_fa=max_fa)
+        out[h] = choose_alt(sub, cfg, choose_moves(sub, cfg, choose(sub, cfg, max_fa=max_fa), max_fa=max_fa),
+                            max_fa=max_fa)
     return out
 
 
@@ -290,19 +338,23 @@ def main(argv=None) -> int:
     rep = [r for r in rows if half_of(r) == 1]
     mf = args.max_fa
     chosen4 = choose(fit, cfg, max_fa=mf)  # the session-11 rule, without 3D moves
-    chosen = choose_moves(fit, cfg, chosen4, max_fa=mf)  # then the 3D moves' threshold with those fixed
+    chosen5 = choose_moves(fit, cfg, chosen4, max_fa=mf)  # then the 3D moves' threshold with those fixed
+    chosen = choose_alt(fit, cfg, chosen5, max_fa=mf)  # then the runner-up's gap
     pc = cfg.parts
     conf = (pc.flag_below, pc.colour_weight, pc.revealed_weight, pc.shift_weight,
-            pc.move_gain if pc.moves else float("inf"))
+            pc.move_gain if pc.moves else float("inf"), pc.alt_gap)
     ablations = {"session-10 score (support + colour)": choose(fit, cfg, revealed=[0.0], shifts=[0.0], max_fa=mf) + (float("inf"),),
                  "no colour": choose(fit, cfg, colours=[0.0], max_fa=mf) + (float("inf"),),
                  "no contrast with the model without the part": choose(fit, cfg, revealed=[0.0], max_fa=mf) + (float("inf"),),
                  "no shift term": choose(fit, cfg, shifts=[0.0], max_fa=mf) + (float("inf"),),
                  "no 3D moves (session 11's report)": chosen4 + (float("inf"),),
+                 "no runner-up (session 31's report)": chosen5 + (0.0,),
                  "configured": conf,
-                 "configured without 3D moves": conf[:4] + (float("inf"),),
-                 "configured, the 3D moves' threshold by the rule": choose_moves(fit, cfg, conf[:4], max_fa=mf)}
-    names = ("flag_below", "colour_weight", "revealed_weight", "shift_weight", "move_gain")
+                 "configured without 3D moves": conf[:4] + (float("inf"), conf[5]),
+                 "configured without the runner-up": conf[:5] + (0.0,),
+                 "configured, the 3D moves' threshold by the rule": choose_moves(fit, cfg, conf[:4], max_fa=mf) + (conf[5],),
+                 "configured, the runner-up's gap by the rule": choose_alt(fit, cfg, conf[:5], max_fa=mf)}
+    names = ("flag_below", "colour_weight", "revealed_weight", "shift_weight", "move_gain", "alt_gap")
     def named(params: tuple) -> dict:  # JSON: an infinite move_gain (no 3D moves) as null
         return {k: (None if np.isinf(v) else float(v)) for k, v in zip(names, params)}
 
@@ -323,7 +375,8 @@ def main(argv=None) -> int:
                   "add_1cm_after_part_realignment": float(np.mean([r.get("add_robust_mm", 1e9) < 10 for r in rows])),
                   "realigned": int(sum(1 for r in ok if r["dropped"])),
                   "median_s_per_image": float(np.median([r["seconds"] for r in ok])) if ok else None}
-    print(f"chosen on the fitting half: flag_below, colour_weight, revealed_weight, shift_weight, move_gain = {chosen}")
+    print(f"chosen on the fitting half: flag_below, colour_weight, revealed_weight, shift_weight, move_gain, alt_gap"
+          f" = {chosen}")
     print(f"cross-fit: chosen on the even ids {folds[0]}, on the odd ids {folds[1]}; every image judged with the other"
           f" half's choice:")
     for k in ("estimated", "gt_pose", "estimated_add_below_1cm"):
