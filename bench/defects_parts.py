@@ -43,8 +43,8 @@ sys.path.insert(0, str(REPO / "bench"))
 
 from pixie.config import PixieConfig  # noqa: E402
 from pixie.cues.edge_align import align_kwargs, edge_fit, photo_edges, photo_edges_kwargs  # noqa: E402
-from pixie.cues.parts import (PartSupport, complement_renderers, hidden_from_runner_up, judge_parts, part_renderers,  # noqa: E402
-                              part_support, report_kwargs, robust_part_fit)
+from pixie.cues.parts import (PartSupport, complement_renderers, hidden_from_runner_up, is_flip_runner_up,  # noqa: E402
+                              judge_parts, part_renderers, part_support, report_kwargs, robust_part_fit)
 from pixie.eval import pose_error as M  # noqa: E402
 from pixie.eval.datasets import BopDataset  # noqa: E402
 from pixie.geometry.collide import part_solids  # noqa: E402
@@ -141,7 +141,7 @@ def analyse(data: Path, ests: dict, cfg: PixieConfig, echo=print, use_mask: bool
                        pose_fit=edge_fit(ren, pe, T, fit_px=ac.fit_px).as_dict())
             if est.get("runner_up_T") is not None:  # the runner-up (parts.alt_gap): judged when it is a flip
                 Ta = np.asarray(est["runner_up_T"], np.float64)
-                rec.update(alt_gap=float(est["score"]) - float(est["runner_up_score"]),
+                rec.update(alt_gap=float(est["score"]) - float(est["runner_up_score"]), T_alt=Ta.tolist(),
                            alt_deg=float(M.rotation_error_deg(Ta, T)),
                            alt_add_mm=float(M.add(Ta, inst.T_cam_from_obj, phys_pts[str(phys)])))
                 if rec["alt_deg"] >= cfg.parts.alt_min_deg:
@@ -179,8 +179,9 @@ def row_verdicts(r: dict, cfg: PixieConfig, params: tuple, key: str = "parts") -
     (:func:`pixie.cues.parts.hidden_from_runner_up`, the estimator's rule)."""
     ps = _judged(r[key], cfg, params)
     gap = params[5] if len(params) > 5 else 0.0
-    if (key == "parts" and gap > 0 and "parts_alt" in r and r["alt_deg"] >= cfg.parts.alt_min_deg
-            and r["alt_gap"] <= gap):
+    if key == "parts" and "parts_alt" in r and is_flip_runner_up(
+            np.asarray(r["T"]), r["score"], np.asarray(r["T_alt"]), r["score"] - r["alt_gap"], alt_gap=gap,
+            alt_min_deg=cfg.parts.alt_min_deg):  # the estimator's rule (PoseEstimator.runner_up)
         hidden_from_runner_up(ps, _judged(r["parts_alt"], cfg, params))
     return [p.verdict for p in ps]
 

@@ -45,6 +45,7 @@ import numpy as np
 from pixie.config import PART_KINDS, PartsConfig
 from pixie.cues.edge_align import align, edge_distances
 from pixie.cues.edge_photo import PhotoEdges
+from pixie.geometry.camera import rotation_angle_deg
 from pixie.geometry.collide import PartSolids, collides, part_solids
 from pixie.geometry.mesh import Mesh, from_arrays
 from pixie.cues.part_moves import (MoveFit, explain_away, explained, move_evidence, near_maps, part_contours,
@@ -54,7 +55,7 @@ from pixie.pose.results import SUSPECT_VERDICTS
 
 __all__ = ["VERDICTS", "PartSupport", "report_kwargs", "part_renderers", "complement_renderers", "part_support",
            "part_score", "judge_parts", "robust_part_fit",
-           "hidden_from_runner_up"]
+           "hidden_from_runner_up", "is_flip_runner_up"]
 
 VERDICTS = ("present", "missing", "displaced", "not visible")
 
@@ -434,6 +435,17 @@ def robust_part_fit(renderer: Renderer, face_parts: np.ndarray, part_names, pe: 
     if kept_median(ps2) >= kept_median(ps):
         return res.T_cam_from_obj, ps2, drop
     return np.asarray(T, np.float64), ps, []
+
+
+def is_flip_runner_up(T: np.ndarray, score: float, T_alt: np.ndarray, score_alt: float, *, alt_gap: float,
+                      alt_min_deg: float = 150.0) -> bool:
+    """Whether the runner-up pose ``T_alt`` (score ``score_alt``) is a near-equal flip of the chosen pose ``T``
+    (``score``): turned at least ``alt_min_deg`` from it and scoring within ``alt_gap`` of it
+    (``config.parts.alt_gap`` / ``alt_min_deg``; ``alt_gap`` <= 0: never). Then the parts hidden at ``T`` are judged
+    at ``T_alt`` (:func:`hidden_from_runner_up`)."""
+    if alt_gap <= 0 or score - score_alt > alt_gap:
+        return False
+    return rotation_angle_deg(np.asarray(T_alt)[:3, :3], np.asarray(T)[:3, :3]) >= alt_min_deg
 
 
 def hidden_from_runner_up(parts: list[PartSupport], runner_up: list[PartSupport]) -> list[PartSupport]:

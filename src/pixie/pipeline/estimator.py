@@ -71,8 +71,8 @@ from pixie.geometry.render import Renderer
 from pixie.cues.edge_align import (align, align_kwargs, calibrated_confidence, coarse_kwargs, coarse_levels,
                                    confidence_size, edge_fit, flip_twins, photo_edges, photo_edges_kwargs)
 from pixie.cues.edges import EdgeQuery
-from pixie.cues.parts import (complement_renderers, hidden_from_runner_up, judge_parts, part_renderers,
-                              part_support, report_kwargs, robust_part_fit)
+from pixie.cues.parts import (complement_renderers, hidden_from_runner_up, is_flip_runner_up, judge_parts,
+                              part_renderers, part_support, report_kwargs, robust_part_fit)
 from pixie.cues.shape import fused_score, shape_cues
 from pixie.pose.results import NO_BOX_MESSAGE, Hypothesis, PoseResult, set_confidences
 from pixie.threads import map_threads
@@ -300,13 +300,12 @@ class PoseEstimator:
         """The result's best distinct alternative when it is a near-equal flip of the chosen pose ``T`` (turned at
         least ``parts.alt_min_deg`` and scoring within ``parts.alt_gap`` of it), else None."""
         pc = self.cfg.parts
-        if pc.alt_gap <= 0 or len(res.hypotheses) < 2:
+        if len(res.hypotheses) < 2:
             return None
         alt = res.hypotheses[1]
-        if (res.score - alt.score <= pc.alt_gap
-                and rotation_angle_deg(alt.T_cam_from_obj[:3, :3], T[:3, :3]) >= pc.alt_min_deg):
-            return alt
-        return None
+        flip = is_flip_runner_up(T, res.score, alt.T_cam_from_obj, alt.score, alt_gap=pc.alt_gap,
+                                 alt_min_deg=pc.alt_min_deg)
+        return alt if flip else None
 
     def estimate_from_prior(self, image: np.ndarray, K: np.ndarray, T_init: np.ndarray, bbox=None,
                             mask: np.ndarray | None = None, margin: float | None = None) -> PoseResult:
