@@ -468,6 +468,22 @@ def test_a_runner_up_counts_only_as_a_near_equal_flip():
     assert not is_flip_runner_up(T, 2.0, turned(178.0), 1.99, alt_gap=0.0, alt_min_deg=150.0)  # off
 
 
+def test_the_console_report_says_when_a_verdict_comes_from_the_runner_up():
+    from types import SimpleNamespace
+
+    from pixie.app.cli import part_report_text
+    from pixie.cues.parts import PartSupport
+
+    parts = [PartSupport(index=k, name=f"p{k}", support=s, relative=s / 0.6, shifted=s, shift_px=0.0, visible=v,
+                         n_points=n, verdict=verdict, judged_at=at).as_dict()
+             for k, (s, v, n, verdict, at) in enumerate([(0.6, 1.0, 80, "present", ""), (0.0, 0.0, 0, "missing", "runner-up"),
+                                                         (0.2, 0.9, 40, "missing", "")])]
+    text = part_report_text(SimpleNamespace(parts=parts, suspect_parts=["p1", "p2"], confidence=0.9))
+    lines = {ln.split()[0]: ln for ln in text.splitlines()[1:]}
+    assert text.splitlines()[0].startswith("parts: 2 suspect (p1, p2) of 3")
+    assert "runner-up pose" in lines["p1"] and "runner-up" not in lines["p2"] and "runner-up" not in lines["p0"]
+
+
 def test_the_runner_up_rule_is_configured_and_checked():
     cfg = PixieConfig.from_preset("default")
     assert (cfg.parts.alt_gap, cfg.parts.alt_min_deg) == (0.25, 150.0)  # measured: bench/RESULTS.md, session 33

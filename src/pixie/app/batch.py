@@ -424,7 +424,8 @@ def _html(records: list[dict], n_total: int, config: PixieConfig) -> str:
         if with_parts:
             sus = [p for p in res.get("parts") or [] if p.get("verdict") in SUSPECT_VERDICTS]
             status += "<br>" + ("<b>suspect parts:</b> " + ", ".join(
-                f"{html.escape(p['name'])} ({p['verdict']}, support {p['support']:.2f})" for p in sus)
+                f"{html.escape(p['name'])} ({p['verdict']}, support {p['support']:.2f}"
+                + (", at the flipped runner-up pose" if p.get("judged_at") == "runner-up" else "") + ")" for p in sus)
                 if sus else "parts: none suspect")
         rows.append(f"<tr><td>{r['row']}</td><td>{html.escape(r['name'])}</td><td>{img}</td><td>{status}</td>"
                     f"<td>{res.get('score', 0):.2f}</td><td>{res.get('confidence', 0):.2f}</td><td>{rv}</td><td>{t}</td><td>{err}</td>"

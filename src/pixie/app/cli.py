@@ -301,6 +301,9 @@ def part_report_text(res) -> str:
                      and p.get("move_gain", 0.0) > 0 else
                      f", best shifted {p['shifted_support']:.2f} at {p['shift_px']:.0f} px")
         hidden = (f", behind it {p['revealed_support']:.2f}" if p.get("n_revealed", 0) else "")
+        if p.get("judged_at") == "runner-up":  # config.parts.alt_gap
+            extra += (", hidden at this pose: judged at the runner-up pose, a near-equal flip (the assembly may be "
+                      "posed the other way round)")
         lines.append(f"  {p['name']:<28s} {p['verdict']:<11s} support {p['support']:.2f} "
                      f"(x{p['relative']:.2f} of the median part){hidden}, {100 * p['visible']:.0f} % visible{extra}")
     return "\n".join(lines)
