@@ -174,9 +174,9 @@ def _judged(parts: list[dict], cfg: PixieConfig, params: tuple) -> list[PartSupp
 
 def row_verdicts(r: dict, cfg: PixieConfig, params: tuple, key: str = "parts") -> list[str]:
     """The verdicts of row ``r``'s parts (``key``) under ``params`` (:func:`rejudge`). A sixth entry of ``params`` is
-    ``parts.alt_gap``: at the estimated pose, parts not visible take the runner-up's verdict when the runner-up is a
-    flip (``alt_deg`` >= ``parts.alt_min_deg``, its report stored as ``parts_alt``) scoring within that gap
-    (:func:`pixie.cues.parts.hidden_from_runner_up`, the estimator's rule)."""
+    ``parts.alt_gap``: at the estimated pose, parts not visible take the runner-up's verdict (its report is stored as
+    ``parts_alt`` when it is turned >= ``parts.alt_min_deg``) when :func:`pixie.cues.parts.is_flip_runner_up` says it
+    is a near-equal flip within that gap (:func:`pixie.cues.parts.hidden_from_runner_up`: the estimator's rule)."""
     ps = _judged(r[key], cfg, params)
     gap = params[5] if len(params) > 5 else 0.0
     if key == "parts" and "parts_alt" in r and is_flip_runner_up(

@@ -493,7 +493,7 @@ class PartsConfig(_Section):
     # defect of a near-symmetric assembly is often its only asymmetric detail, and the pose that hides it fits the
     # contour as well. Defects benchmark, the estimator's runner-ups (bench/defects_parts.py, bench/RESULTS.md session
     # 33): the rule (best mean recall at <= 0.05 false alarms on one half; ties: the middle gap) picks 0.25 on both
-    # halves, the plateau is 0.1-0.5; configured thresholds, all 336 photos: missing 0.75 -> 0.81, wrong 0.70 -> 0.73,
+    # halves, the plateau is 0.15-0.5; configured thresholds, all 336 photos: missing 0.75 -> 0.81, wrong 0.70 -> 0.73,
     # false alarms 0.062 unchanged. 0: off
     alt_gap: float = 0.25
     alt_min_deg: float = 150.0
