@@ -161,19 +161,15 @@ def analyse(data: Path, ests: dict, cfg: PixieConfig, echo=print, use_mask: bool
     return rows
 
 
-def rejudge(parts: list[dict], cfg: PixieConfig, params: tuple) -> list[str]:
-    """Verdicts of stored part records under other (flag_below, colour_weight, revealed_weight, shift_weight[,
-    move_gain]) (:func:`judge_parts` on the records)."""
-    return [p.verdict for p in _judged(parts, cfg, params)]
-
-
 def _judged(parts: list[dict], cfg: PixieConfig, params: tuple) -> list[PartSupport]:
+    """Stored part records judged under other (flag_below, colour_weight, revealed_weight, shift_weight[, move_gain])
+    (:func:`judge_parts` on the records)."""
     _, judge, _ = _kw(cfg, *params[:5])
     return judge_parts([PartSupport.from_dict(p) for p in parts], **judge)
 
 
 def row_verdicts(r: dict, cfg: PixieConfig, params: tuple, key: str = "parts") -> list[str]:
-    """The verdicts of row ``r``'s parts (``key``) under ``params`` (:func:`rejudge`). A sixth entry of ``params`` is
+    """The verdicts of row ``r``'s parts (``key``) under ``params`` (:func:`_judged`). A sixth entry of ``params`` is
     ``parts.alt_gap``: at the estimated pose, parts not visible take the runner-up's verdict (its report is stored as
     ``parts_alt`` when it is turned >= ``parts.alt_min_deg``) when :func:`pixie.cues.parts.is_flip_runner_up` says it
     is a near-equal flip within that gap (:func:`pixie.cues.parts.hidden_from_runner_up`: the estimator's rule)."""
