@@ -23,6 +23,9 @@ Usage::
     OMP_NUM_THREADS=1 .venv/bin/python bench/defects_parts.py --data out/bench/defects300 \\
         --estimates out/bench/defects300_run/estimates.jsonl --preset default --out out/bench/defects300_parts.json
 
+Two processes side by side: ``--shard 0/2 --out a.json`` and ``--shard 1/2 --out b.json``, then ``--merge a.json
+b.json --out all.json`` (the same rows as one process).
+
 Prints the tables (per defect type: recall of the defective part, false alarms per correct assembly) and writes
 the JSON (per image: verdicts and supports of every part, ADD before / after the re-alignment).
 """
@@ -57,16 +60,18 @@ REVEALED_GRID = [0.0, 0.5, 1.0, 1.5, 2.0]  # 0: the session-10 score (no contras
 SHIFT_GRID = [0.0, 0.5, 1.0]  # weight of the shift search's gain in the score
 MOVE_GRID = [0.1, 0.15, 0.2, 0.25, 0.3, 0.35, 0.4, 0.5, 0.6, float("inf")]  # parts.move_gain (inf: no 3D moves)
 ALT_GRID = [0.0, 0.05, 0.1, 0.15, 0.2, 0.25, 0.3, 0.4, 0.5]  # parts.alt_gap (0: no runner-up)
+RESIZE_GRID = [0.1, 0.15, 0.2, 0.25, 0.3, 0.35, 0.4, 0.5, 0.6, float("inf")]  # parts.resize_gain (inf: no resizes)
+FLAG = ("missing", "displaced", "wrong")  # the verdicts that flag a part (pixie.pose.results.SUSPECT_VERDICTS)
 PART_DEFECTS = ("missing", "shifted", "rotated", "wrong")
 
 
 def _kw(cfg: PixieConfig, flag_below: float | None = None, colour_weight: float | None = None,
         revealed_weight: float | None = None, shift_weight: float | None = None,
-        move_gain: float | None = None) -> tuple[dict, dict, dict]:
+        move_gain: float | None = None, resize_gain: float | None = None) -> tuple[dict, dict, dict]:
     pc, ac = cfg.parts, cfg.align
     support, judge = report_kwargs(pc)
     for k, v in (("flag_below", flag_below), ("colour_weight", colour_weight), ("revealed_weight", revealed_weight),
-                 ("shift_weight", shift_weight), ("move_gain", move_gain)):
+                 ("shift_weight", shift_weight), ("move_gain", move_gain), ("resize_gain", resize_gain)):
         if v is not None:
             judge[k] = v
     align = align_kwargs(ac)
@@ -111,7 +116,8 @@ def analyse(data: Path, ests: dict, cfg: PixieConfig, echo=print, use_mask: bool
             m = load_mesh(data / parts_dir / f"obj_{oid:06d}.glb")
             models[oid] = (m, Renderer(m, smooth_normals=True), part_renderers(m),
                            complement_renderers(m, smooth_normals=True),
-                           part_solids(m) if cfg.parts.moves and cfg.parts.move_collide else None)
+                           part_solids(m) if (cfg.parts.moves or cfg.parts.resizes) and cfg.parts.move_collide
+                           else None)
         mesh, ren, prs, comps, solids = models[oid]
         phys = data / v["model_dir"] / f"obj_{v['model_obj_id']:06d}.ply"
         if str(phys) not in phys_pts:
@@ -162,9 +168,9 @@ def analyse(data: Path, ests: dict, cfg: PixieConfig, echo=print, use_mask: bool
 
 
 def _judged(parts: list[dict], cfg: PixieConfig, params: tuple) -> list[PartSupport]:
-    """Stored part records judged under other (flag_below, colour_weight, revealed_weight, shift_weight[, move_gain])
-    (:func:`judge_parts` on the records)."""
-    _, judge, _ = _kw(cfg, *params[:5])
+    """Stored part records judged under other (flag_below, colour_weight, revealed_weight, shift_weight[, move_gain[,
+    alt_gap[, resize_gain]]]) (:func:`judge_parts` on the records; a missing resize_gain: none, as without resizes)."""
+    _, judge, _ = _kw(cfg, *params[:5], resize_gain=params[6] if len(params) > 6 else float("inf"))
     return judge_parts([PartSupport.from_dict(p) for p in parts], **judge)
 
 
@@ -190,7 +196,6 @@ def table(rows: list[dict], cfg: PixieConfig, params, key: str = "parts") -> dic
     tuple (the cross-fit: each half judged with what the other half chose)."""
     of = params if callable(params) else (lambda r: params)
     out: dict[str, dict] = {}
-    FLAG = ("missing", "displaced")
     by: dict[str, list[dict]] = {}
     for r in rows:
         if key not in r:
@@ -207,7 +212,7 @@ def table(rows: list[dict], cfg: PixieConfig, params, key: str = "parts") -> dic
         else:
             ver = [v[r["defect_part"]] if r["defect_part"] < len(v) else "not visible" for r, v in zip(rs, vs)]
             right = {"missing": ("missing",), "shifted": ("displaced",), "rotated": ("displaced",),
-                     "wrong": ("missing", "displaced")}[d]
+                     "wrong": ("missing", "displaced", "wrong")}[d]
             other = [sum(x in FLAG for j, x in enumerate(v) if j != r["defect_part"]) for r, v in zip(rs, vs)]
             out[d] = dict(n=len(rs), recall=float(np.mean([x in FLAG for x in ver])),
                           recall_visible=float(np.mean([x in FLAG for x in ver if x != "not visible"]))
@@ -251,6 +256,22 @@ def choose_alt(rows: list[dict], cfg: PixieConfig, params: tuple, grid=ALT_GRID,
     return tuple(params[:5]) + (tied[(len(tied) - 1) // 2],)
 
 
+def choose_resize(rows: list[dict], cfg: PixieConfig, params: tuple, grid=RESIZE_GRID, max_fa: float = 0.1) -> tuple:
+    """``params`` (six entries, :func:`choose_alt`) with the ``parts.resize_gain`` of ``grid`` that gives the best mean
+    recall over the part defects with <= ``max_fa`` false alarms per correct assembly (ties to the fewer alarms, then
+    to the larger threshold)."""
+    best, key = tuple(params[:6]) + (float("inf"),), (-1.0, 0.0)
+    for rg in sorted(grid, reverse=True):
+        t = table(rows, cfg, tuple(params[:6]) + (rg,))
+        fa = t.get("none (correct assembly)", {}).get("false_alarms_per_image", 0.0)
+        if fa > max_fa + 1e-9:
+            continue
+        rec = mean_recall(t)
+        if (rec, -fa) > key:
+            best, key = tuple(params[:6]) + (rg,), (rec, -fa)
+    return best
+
+
 def choose(rows: list[dict], cfg: PixieConfig, colours=COLOUR_GRID, revealed=REVEALED_GRID,
            shifts=SHIFT_GRID, max_fa: float = 0.1) -> tuple:
     """(flag_below, colour_weight, revealed_weight, shift_weight) with the best mean recall over the part defects among those with
@@ -277,14 +298,15 @@ def half_of(r: dict) -> int:
 
 
 def cross_fit(rows: list[dict], cfg: PixieConfig, max_fa: float = 0.1) -> dict[int, tuple]:
-    """The rule (:func:`choose`, then :func:`choose_moves`, then :func:`choose_alt`) applied on each half: {half: its parameters}. Judging
+    """The rule (:func:`choose`, then :func:`choose_moves`, :func:`choose_alt` and :func:`choose_resize`) applied on
+    each half: {half: its parameters}. Judging
     every image with the other half's choice gives a two-fold estimate over all images, twice the report half's
     (48 correct assemblies instead of 24), and shows how much the choice depends on which half it saw."""
     out = {}
     for h in (0, 1):
         sub = [r for r in rows if half_of(r) == h]
-        out[h] = choose_alt(sub, cfg, choose_moves(sub, cfg, choose(sub, cfg, max_fa=max_fa), max_fa=max_fa),
-                            max_fa=max_fa)
+        out[h] = choose_resize(sub, cfg, choose_alt(sub, cfg, choose_moves(sub, cfg, choose(sub, cfg, max_fa=max_fa),
+                                                                          max_fa=max_fa), max_fa=max_fa), max_fa=max_fa)
     return out
 
 
@@ -312,6 +334,10 @@ def main(argv=None) -> int:
     ap.add_argument("--set", action="append", default=[], metavar="SECTION.KEY=VALUE")
     ap.add_argument("--out", type=Path, required=True)
     ap.add_argument("--reuse", action="store_true", help="re-score the rows of an existing --out (no computation)")
+    ap.add_argument("--shard", default=None, metavar="K/N", help="compute the rows of every N-th photo from the K-th "
+                    "(sorted by scene and image id) into --out and stop: N processes side by side, then --merge")
+    ap.add_argument("--merge", type=Path, nargs="+", default=None, help="re-score the rows of these --shard outputs "
+                    "together (written to --out)")
     ap.add_argument("--mask", action="store_true", help="the part report inside the GT visible mask (as with "
                     "`pixie inspect --mask`): occluders in front of the assembly are then known")
     ap.add_argument("--parts-dir", default=None, help="the part models under --data: models_parts_solid (every part "
@@ -323,36 +349,50 @@ def main(argv=None) -> int:
     cfg = PixieConfig.from_preset(args.preset).apply_overrides(args.set)
     if args.parts_dir is None:
         args.parts_dir = "models_parts_solid" if (args.data / "models_parts_solid").is_dir() else "models_parts"
-    if args.reuse and args.out.is_file():
+    if args.merge:
+        rows = [r for f in args.merge for r in json.loads(f.read_text())["rows"]]
+    elif args.reuse and args.out.is_file():
         rows = json.loads(args.out.read_text())["rows"]
     else:
         ests: dict = {}
         for j in args.estimates:
             ests.update(target_estimates(j, args.data, cfg))
         print(f"{len(ests)} target-model estimates")
+        if args.shard:
+            k, n = (int(x) for x in args.shard.split("/"))
+            ests = {key: ests[key] for key in sorted(ests)[k::n]}
         rows = analyse(args.data, ests, cfg, use_mask=args.mask, parts_dir=args.parts_dir)
+        if args.shard:
+            args.out.write_text(json.dumps({"shard": args.shard, "rows": rows}, default=float))
+            print(f"wrote {len(rows)} rows to {args.out} (shard {args.shard}; --merge the shards to score them)")
+            return 0
     fit = [r for r in rows if half_of(r) == 0]
     rep = [r for r in rows if half_of(r) == 1]
     mf = args.max_fa
     chosen4 = choose(fit, cfg, max_fa=mf)  # the session-11 rule, without 3D moves
     chosen5 = choose_moves(fit, cfg, chosen4, max_fa=mf)  # then the 3D moves' threshold with those fixed
-    chosen = choose_alt(fit, cfg, chosen5, max_fa=mf)  # then the runner-up's gap
+    chosen6 = choose_alt(fit, cfg, chosen5, max_fa=mf)  # then the runner-up's gap
+    chosen = choose_resize(fit, cfg, chosen6, max_fa=mf)  # then the resizes' threshold
     pc = cfg.parts
+    inf = float("inf")
     conf = (pc.flag_below, pc.colour_weight, pc.revealed_weight, pc.shift_weight,
-            pc.move_gain if pc.moves else float("inf"), pc.alt_gap)
-    ablations = {"session-10 score (support + colour)": choose(fit, cfg, revealed=[0.0], shifts=[0.0], max_fa=mf) + (float("inf"),),
-                 "no colour": choose(fit, cfg, colours=[0.0], max_fa=mf) + (float("inf"),),
-                 "no contrast with the model without the part": choose(fit, cfg, revealed=[0.0], max_fa=mf) + (float("inf"),),
-                 "no shift term": choose(fit, cfg, shifts=[0.0], max_fa=mf) + (float("inf"),),
-                 "no 3D moves (session 11's report)": chosen4 + (float("inf"),),
-                 "no runner-up (session 31's report)": chosen5 + (0.0,),
+            pc.move_gain if pc.moves else inf, pc.alt_gap, pc.resize_gain if pc.resizes else inf)
+    ablations = {"session-10 score (support + colour)": choose(fit, cfg, revealed=[0.0], shifts=[0.0], max_fa=mf) + (inf, 0.0, inf),
+                 "no colour": choose(fit, cfg, colours=[0.0], max_fa=mf) + (inf, 0.0, inf),
+                 "no contrast with the model without the part": choose(fit, cfg, revealed=[0.0], max_fa=mf) + (inf, 0.0, inf),
+                 "no shift term": choose(fit, cfg, shifts=[0.0], max_fa=mf) + (inf, 0.0, inf),
+                 "no 3D moves (session 11's report)": chosen4 + (inf, 0.0, inf),
+                 "no runner-up (session 31's report)": chosen5 + (0.0, inf),
+                 "no resizes (session 33's report)": chosen6 + (inf,),
                  "configured": conf,
-                 "configured without 3D moves": conf[:4] + (float("inf"), conf[5]),
-                 "configured without the runner-up": conf[:5] + (0.0,),
-                 "configured, the 3D moves' threshold by the rule": choose_moves(fit, cfg, conf[:4], max_fa=mf) + (conf[5],),
-                 "configured, the runner-up's gap by the rule": choose_alt(fit, cfg, conf[:5], max_fa=mf)}
-    names = ("flag_below", "colour_weight", "revealed_weight", "shift_weight", "move_gain", "alt_gap")
-    def named(params: tuple) -> dict:  # JSON: an infinite move_gain (no 3D moves) as null
+                 "configured without 3D moves": conf[:4] + (inf,) + conf[5:],
+                 "configured without the runner-up": conf[:5] + (0.0,) + conf[6:],
+                 "configured without resizes": conf[:6] + (inf,),
+                 "configured, the 3D moves' threshold by the rule": choose_moves(fit, cfg, conf[:4], max_fa=mf) + conf[5:],
+                 "configured, the runner-up's gap by the rule": choose_alt(fit, cfg, conf[:5], max_fa=mf) + conf[6:],
+                 "configured, the resizes' threshold by the rule": choose_resize(fit, cfg, conf[:6], max_fa=mf)}
+    names = ("flag_below", "colour_weight", "revealed_weight", "shift_weight", "move_gain", "alt_gap", "resize_gain")
+    def named(params: tuple) -> dict:  # JSON: an infinite move_gain / resize_gain (none tried) as null
         return {k: (None if np.isinf(v) else float(v)) for k, v in zip(names, params)}
 
     folds = cross_fit(rows, cfg, max_fa=mf)
@@ -372,7 +412,8 @@ def main(argv=None) -> int:
                   "add_1cm_after_part_realignment": float(np.mean([r.get("add_robust_mm", 1e9) < 10 for r in rows])),
                   "realigned": int(sum(1 for r in ok if r["dropped"])),
                   "median_s_per_image": float(np.median([r["seconds"] for r in ok])) if ok else None}
-    print(f"chosen on the fitting half: flag_below, colour_weight, revealed_weight, shift_weight, move_gain, alt_gap"
+    print(f"chosen on the fitting half: flag_below, colour_weight, revealed_weight, shift_weight, move_gain, alt_gap,"
+          f" resize_gain"
           f" = {chosen}")
     print(f"cross-fit: chosen on the even ids {folds[0]}, on the odd ids {folds[1]}; every image judged with the other"
           f" half's choice:")

@@ -97,7 +97,7 @@ def lego(tmp_path_factory):
     mesh = load_mesh(path)
     bad = missing_part(asm, np.random.default_rng(0))
     return dict(asm=asm, mesh=mesh, ren=Renderer(mesh), parts=part_renderers(mesh), bad=bad,
-                removed=int(bad.defect["part"]), comps=complement_renderers(mesh))
+                removed=int(bad.defect["part"]), comps=complement_renderers(mesh), solids=part_solids(mesh))
 
 
 def _photo(asm, T, seed):
@@ -148,7 +148,7 @@ PHOTO = photo_edges_kwargs(_AC)  # ... and the photo's edges as the estimator ma
 
 def _report(lego, pe, T, moves: bool = False):
     ps = part_support(lego["ren"], lego["mesh"].face_parts, lego["mesh"].part_names, pe, T, renderers=lego["parts"],
-                      complements=lego["comps"], **(MOVES_SUPPORT if moves else SUPPORT))
+                      complements=lego["comps"], solids=lego["solids"], **(MOVES_SUPPORT if moves else SUPPORT))
     return judge_parts(ps, **(MOVES_JUDGE if moves else JUDGE))
 
 
@@ -418,7 +418,8 @@ def test_part_support_record_round_trip():
 
     p = PartSupport(index=2, name="brick_2", support=0.4321, relative=0.61, shifted=0.7, shift_px=3.25, visible=0.8,
                     n_points=57, colour=1.3, exclusive=0.2, n_exclusive=11, revealed=0.35, n_revealed=9,
-                    exclusive_shifted=0.5, move_gain=0.42, move="+y 7.9 mm", verdict="displaced")
+                    exclusive_shifted=0.5, move_gain=0.42, move="+y 7.9 mm", size_gain=0.31,
+                    size="1.5x as long along z, low end kept", size_support=0.8, verdict="displaced")
     d = p.as_dict()
     assert PartSupport.from_dict(d).as_dict() == d
     old = {k: v for k, v in d.items() if k not in ("colour", "exclusive_support", "n_exclusive")}  # an older record
@@ -491,3 +492,95 @@ def test_the_runner_up_rule_is_configured_and_checked():
     assert (off.parts.alt_gap, off.parts.alt_min_deg) == (0.0, 120.0)
     with pytest.raises(ConfigError, match="alt_min_deg"):
         PixieConfig.from_preset("default").apply_overrides(["parts.alt_min_deg=200"])
+
+
+# ------------------------------------------------------------------------------------------ resizes (a wrong part)
+
+
+def test_part_resizes_scale_one_model_axis_and_keep_one_end(lego):
+    """Each resize scales the part along x, y or z by its factor, keeps the low or the high end of the part's box
+    where it is, leaves the other two axes alone, and is not rigid; none moves the free end by under 1 mm."""
+    from pixie.cues.part_moves import RESIZE_FACTORS, is_rigid, part_resizes
+
+    mesh = lego["mesh"]
+    k = 1
+    V = mesh.vertices[np.unique(mesh.faces[mesh.face_parts == k])]
+    lo, hi = V.min(axis=0), V.max(axis=0)
+    sizes = part_resizes(mesh, k)
+    names = [n for n, _ in sizes]
+    assert len(names) == len(set(names)) and len(sizes) == 2 * 3 * len(RESIZE_FACTORS)  # every axis > 3 mm thick
+    for name, A in sizes:
+        a = "xyz".index(name.split("along ")[1][0])
+        s = float(name.split("x as long")[0])
+        W = V @ A[:3, :3].T + A[:3, 3]
+        wlo, whi = W.min(axis=0), W.max(axis=0)
+        assert not is_rigid(A)
+        assert np.isclose(whi[a] - wlo[a], A[a, a] * (hi[a] - lo[a])) and np.isclose(A[a, a], s, rtol=0.02)
+        kept = lo[a] if "low end" in name else hi[a]
+        assert np.isclose(wlo[a] if "low end" in name else whi[a], kept)
+        others = [i for i in range(3) if i != a]
+        assert np.allclose(W[:, others], V[:, others])
+    assert all(is_rigid(M) for _, M in part_moves(mesh, k))
+
+
+@pytest.fixture(scope="module")
+def mech(tmp_path_factory):
+    """A mechanical assembly (plate, standoffs, bracket, bolts, post) read back from its GLB, and a copy with a bolt
+    swapped for a longer one (a 'wrong' defect: the same hole, 1.4-2x the length)."""
+    from pixie.synth.assemblies import mechanical_assembly
+    from pixie.synth.defects import wrong_part
+
+    asm = mechanical_assembly(1)
+    path = tmp_path_factory.mktemp("mech") / "asm.glb"
+    write_parts_glb(path, asm)
+    mesh = load_mesh(path)
+    bolt = next(k for k, p in enumerate(asm.parts) if p.kind == "shaft")
+    bad = wrong_part(asm, np.random.default_rng(0), part=bolt)
+    return dict(asm=asm, mesh=mesh, ren=Renderer(mesh), parts=part_renderers(mesh), bad=bad, bolt=bolt,
+                comps=complement_renderers(mesh), solids=part_solids(mesh))
+
+
+def test_a_longer_bolt_is_reported_wrong_with_its_resize_and_a_complete_assembly_is_not(mech):
+    """The resize search (``parts.resizes`` true, off by default) at the true pose: a bolt swapped for one 1.4-2x as
+    long in the same hole is 'wrong', found longer along z with its low end kept; on the complete assembly no part
+    is 'wrong'. 12 viewpoints each; measured (mechanical_assembly(1), its bolt 1.7x as long): 9 / 12 'wrong', each
+    as 2x as long along z with the low end kept (of the other three: one 'missing', one 'displaced', one where the
+    bolt is hidden); complete assembly: no part 'wrong' in 12 / 12."""
+    cfg = PixieConfig()
+    cfg.set("parts.resizes", True)
+    support, judge = report_kwargs(cfg.parts)
+    mesh = mech["mesh"]
+
+    def report(asm, T, seed):
+        img, box = _photo(asm, T, seed)
+        ps = part_support(mech["ren"], mesh.face_parts, mesh.part_names, photo_edges(img, K, box, **PHOTO), T,
+                          renderers=mech["parts"], complements=mech["comps"], solids=mech["solids"], **support)
+        return judge_parts(ps, **judge)
+
+    n_wrong = n_how = n_clean = 0
+    for seed in range(12):
+        T = _pose(seed, mesh)
+        n_clean += not any(p.verdict == "wrong" for p in report(mech["asm"], T, seed))
+        p = report(mech["bad"], T, seed)[mech["bolt"]]
+        n_wrong += p.verdict == "wrong"
+        n_how += p.verdict == "wrong" and "along z, low end" in p.size and float(p.size.split("x")[0]) > 1
+    assert n_wrong >= 7 and n_how >= 7 and n_clean >= 10, (n_wrong, n_how, n_clean)
+
+
+def test_the_console_report_and_the_overlay_name_a_wrong_part_and_its_size():
+    from types import SimpleNamespace
+
+    from pixie.app.cli import part_report_text
+    from pixie.cues.parts import PartSupport
+    from pixie.viz import VERDICT_COLORS, draw_parts
+
+    uv = np.array([[30.0, 40.0], [31.0, 40.0], [32.0, 41.0]])
+    ps = [PartSupport(index=0, name="plate", support=0.7, relative=1.0, shifted=0.7, shift_px=0.0, visible=1.0,
+                      n_points=90, verdict="present", uv=uv + 20),
+          PartSupport(index=1, name="bolt0", support=0.2, relative=0.3, shifted=0.2, shift_px=0.0, visible=0.8,
+                      n_points=60, size_gain=0.43, size="2x as long along z, low end kept", verdict="wrong", uv=uv)]
+    text = part_report_text(SimpleNamespace(parts=[p.as_dict() for p in ps], suspect_parts=["bolt0"], confidence=0.9))
+    first = text.splitlines()[1]
+    assert first.split()[:2] == ["bolt0", "wrong"] and "2x as long along z, low end kept" in first and "+0.43" in first
+    img = draw_parts(np.zeros((100, 120, 3), np.uint8), ps)
+    assert tuple(img[40, 30]) == VERDICT_COLORS["wrong"] and tuple(img[60, 50]) == VERDICT_COLORS["present"]

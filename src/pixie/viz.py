@@ -128,12 +128,12 @@ def overlay_result(image: np.ndarray, renderer: Renderer, T: np.ndarray | None, 
 
 
 VERDICT_COLORS = {"present": (40, 200, 60), "missing": (235, 30, 30), "displaced": (255, 150, 0),
-                  "not visible": (150, 150, 150)}
+                  "wrong": (200, 40, 220), "not visible": (150, 150, 150)}
 
 
 def draw_parts(image: np.ndarray, parts, radius: int = 1) -> np.ndarray:
     """The part report drawn on ``image``: every part's contour points coloured by its verdict (present green,
-    missing red, displaced orange, not visible grey) and the suspect parts' names next to them.
+    missing red, displaced orange, wrong magenta, not visible grey) and the suspect parts' names next to them.
 
     ``parts``: :class:`pixie.cues.parts.PartSupport` records (``uv`` photo px, ``verdict``, ``name``).
     """
@@ -148,7 +148,8 @@ def draw_parts(image: np.ndarray, parts, radius: int = 1) -> np.ndarray:
         if p.verdict in SUSPECT_VERDICTS and len(p.uv):
             u, v = np.asarray(p.uv).mean(axis=0)
             org = (int(u) + 4, int(v))
-            moved = getattr(p, "move", "") if p.verdict == "displaced" and getattr(p, "move_gain", 0.0) > 0 else ""
+            moved = (getattr(p, "move", "") if p.verdict == "displaced" and getattr(p, "move_gain", 0.0) > 0
+                     else getattr(p, "size", "") if p.verdict == "wrong" else "")
             text = f"{p.name}: {p.verdict}" + (f" ({moved})" if moved else "")
             cv2.putText(out, text, org, cv2.FONT_HERSHEY_SIMPLEX, scale, (0, 0, 0), 3, cv2.LINE_AA)
             cv2.putText(out, text, org, cv2.FONT_HERSHEY_SIMPLEX, scale, VERDICT_COLORS[p.verdict], 1, cv2.LINE_AA)

@@ -433,7 +433,7 @@ def _html(records: list[dict], n_total: int, config: PixieConfig) -> str:
     return f"""<!doctype html><html><head><meta charset="utf-8"><title>pixie batch</title>
 <style>body{{font-family:sans-serif}} td{{padding:4px;vertical-align:top;border-bottom:1px solid #ddd}}</style></head>
 <body><h1>pixie batch: {len(records)} of {n_total} images done</h1>
-{"<p>Part report: photos with suspect (missing or displaced) parts come first; on the overlays parts are green (present), red (missing), orange (displaced), grey (not visible).</p>" if with_parts else ""}
+{"<p>Part report: photos with suspect (missing, displaced or wrong) parts come first; on the overlays parts are green (present), red (missing), orange (displaced), magenta (wrong), grey (not visible).</p>" if with_parts else ""}
 <p>preset {html.escape(str(config.preset))}, config digest {config.digest()}. Overlay: model contour at the estimate (red),
 object axes at its origin (x red, y green, z blue), the given box (yellow). Confidence = best score / (best + second
 distinct hypothesis's score) without the alignment; with it (presets default, fast) the calibrated probability that the

@@ -287,10 +287,10 @@ def _estimate_one(args: argparse.Namespace, notes) -> int:
 
 def part_report_text(res) -> str:
     """The part report for people: suspect parts first, then the others, one line each."""
-    order = {"missing": 0, "displaced": 1, "present": 2, "not visible": 3}
+    order = {"missing": 0, "displaced": 1, "wrong": 2, "present": 3, "not visible": 4}
     rows = sorted(res.parts, key=lambda p: (order.get(p["verdict"], 9), p["index"]))
     sus = res.suspect_parts
-    head = (f"parts: {len(sus)} suspect ({', '.join(sus)})" if sus else "parts: no part missing or displaced") + \
+    head = (f"parts: {len(sus)} suspect ({', '.join(sus)})" if sus else "parts: no part missing, displaced or wrong") + \
         f" of {len(rows)}" + (" (the pose itself is doubtful: confidence "
                               f"{res.confidence:.2f})" if res.confidence < 0.5 else "")
     lines = [head]
@@ -300,6 +300,8 @@ def part_report_text(res) -> str:
             extra = (f", fits better moved {p['move']} (support +{p['move_gain']:.2f})" if p.get("move")
                      and p.get("move_gain", 0.0) > 0 else
                      f", best shifted {p['shifted_support']:.2f} at {p['shift_px']:.0f} px")
+        elif p["verdict"] == "wrong":
+            extra = f", fits better as another size: {p['size']} (support +{p['size_gain']:.2f})"
         hidden = (f", behind it {p['revealed_support']:.2f}" if p.get("n_revealed", 0) else "")
         if p.get("judged_at") == "runner-up":  # config.parts.alt_gap
             extra += (", hidden at this pose: judged at the runner-up pose, a near-equal flip (the assembly may be "

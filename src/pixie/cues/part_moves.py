@@ -21,13 +21,13 @@ import numpy as np
 from pixie.cues.edge_align import edge_distances
 from pixie.cues.edge_photo import PhotoEdges
 from pixie.geometry.camera import project, transform_points
-from pixie.geometry.mesh import Mesh
+from pixie.geometry.mesh import Mesh, from_arrays
 from pixie.geometry.render import RenderResult, Renderer
 from pixie.geometry.rotations import rodrigues
 from pixie.references.templates import edge_map
 
-__all__ = ["Contour", "MoveFit", "part_contours", "contours_of_maps", "near_maps", "explained", "part_moves", "move_evidence",
-           "explain_away"]
+__all__ = ["Contour", "MoveFit", "part_contours", "contours_of_maps", "near_maps", "explained", "part_moves",
+           "part_resizes", "is_rigid", "move_evidence", "explain_away"]
 
 
 def _bin_pixel(xy: np.ndarray, ori: np.ndarray, shape: tuple[int, int], n_bins: int) -> tuple[np.ndarray, ...]:
@@ -178,6 +178,58 @@ def part_moves(mesh: Mesh, k: int, fractions=(1 / 6, 1 / 4, 1 / 3, 1 / 2, 1.0), 
     return out
 
 
+# only longer: a part shortened at one end looks like one whose end is hidden (an occluder, a neighbour), and on the
+# defects benchmark shrinks flagged correct assemblies as often as wrong parts (bench/RESULTS.md, session 34)
+RESIZE_FACTORS = (1.5, 2.0, 3.0)  # a stud row more, a longer bolt, a brick for a plate
+
+
+def part_resizes(mesh: Mesh, k: int, factors=RESIZE_FACTORS, min_mm: float = 1.0) -> list[tuple[str, np.ndarray]]:
+    """Part ``k`` made longer or shorter along one of the model's axes, one end kept: the wrong part of a family
+    mounted where the CAD one goes (a longer bolt in the same hole, a 2x6 brick for a 2x4, a plate for a brick).
+
+    Each is an affine map of the object frame (``X' = A X``): the part scaled by a factor of ``factors`` along axis
+    x, y or z, its bounding box's low or high end along that axis fixed. A resize that moves the free end by less
+    than ``min_mm`` is left out.
+
+    Returns
+    -------
+    list of (description, (4, 4) A), e.g. ('1.5x as long along z, low end kept', A)
+    """
+    faces = mesh.faces[np.asarray(mesh.face_parts) == k]
+    if not len(faces):
+        return []
+    V = mesh.vertices[np.unique(faces)]
+    lo, hi = V.min(axis=0), V.max(axis=0)
+    out: list[tuple[str, np.ndarray]] = []
+    for a, name in enumerate("xyz"):
+        ext = hi[a] - lo[a]
+        for s in factors:
+            if abs(s - 1.0) * ext < min_mm:
+                continue
+            for end, fixed in (("low", lo[a]), ("high", hi[a])):
+                A = np.eye(4)
+                A[a, a] = s
+                A[a, 3] = fixed * (1.0 - s)
+                out.append((f"{s:.2g}x as long along {name}, {end} end kept", A))
+    return out
+
+
+def is_rigid(M: np.ndarray, tol: float = 1e-6) -> bool:
+    """Whether the (4, 4) map ``M`` is a rigid motion (its 3 x 3 block a rotation), not a resize."""
+    R = np.asarray(M, np.float64)[:3, :3]
+    return bool(np.allclose(R.T @ R, np.eye(3), atol=tol) and np.linalg.det(R) > 0)
+
+
+def _render_moved(part: Renderer, T: np.ndarray, M: np.ndarray, K: np.ndarray, size: int) -> RenderResult:
+    """The part alone at ``T M``: a rigid ``M`` moves the pose, a resize (:func:`part_resizes`) the vertices (a
+    renderer of the resized part, so that its normals are the resized surface's)."""
+    if is_rigid(M):
+        return part.render(T @ M, K, size, size)
+    V = part.mesh.vertices @ M[:3, :3].T + M[:3, 3]
+    return Renderer(from_arrays(V, part.mesh.faces, name=f"{part.mesh.name}:resized"),
+                    smooth_normals=part.smooth_normals).render(T, K, size, size)
+
+
 def _composite(rc: RenderResult, pc: np.ndarray, rp: RenderResult, k: int) -> tuple[np.ndarray, ...]:
     """Depth, normals and part map of the model without part ``k`` (``rc``, its part map ``pc``) with the part
     rendered on its own (``rp``, possibly moved) put back in front where it is nearer."""
@@ -258,7 +310,8 @@ def move_evidence(pe: PhotoEdges, T: np.ndarray, k: int, complement: tuple[Rende
     position but not against its absence (what a move would hide is there to see), a moved part gains against
     both; the other parts' contours cancel out. A move is not judged when it shifts no vertex of the part by
     ``min_px`` crop px (too small to tell from the pose's own error) or changes fewer than ``min_changed``
-    contour pixels either way.
+    contour pixels either way. ``moves`` may also be resizes (:func:`part_resizes`): the part is then rendered
+    resized, at ``T``.
 
     Returns
     -------
@@ -273,11 +326,11 @@ def move_evidence(pe: PhotoEdges, T: np.ndarray, k: int, complement: tuple[Rende
     x0, y0, x1, y1 = _move_roi(V, pe, [T] + [T @ M for _, M in moves], ROI_MARGIN)
     uv0 = project(pe.K, transform_points(T, V))
 
-    def contour(Tp: np.ndarray | None) -> Contour:
-        if Tp is None:  # the part absent: the model without it alone
+    def contour(Mp: np.ndarray | None) -> Contour:
+        if Mp is None:  # the part absent: the model without it alone
             d, n, pm = rc.depth, rc.normals, pc
         else:
-            d, n, pm = _composite(rc, pc, part.render(Tp, pe.K, pe.size, pe.size), k)
+            d, n, pm = _composite(rc, pc, _render_moved(part, T, Mp, pe.K, pe.size), k)
         # only where the hypotheses can differ (the part's reach): elsewhere all contours are the same and cancel
         xy, ori, _, _, kind = contours_of_maps(d[y0:y1, x0:x1], n[y0:y1, x0:x1], pm[y0:y1, x0:x1], step_mm=step_mm)
         keep = np.isin(kind, np.asarray(kinds))
@@ -287,14 +340,14 @@ def move_evidence(pe: PhotoEdges, T: np.ndarray, k: int, complement: tuple[Rende
         return Contour(xy=xy, ori=ori, hit=dist[inside] <= fit_px, near=near_maps(xy, ori, shape),
                        roi=(x0, y0, x1, y1))
 
-    cad, absent = contour(T), contour(None)
+    cad, absent = contour(np.eye(4)), contour(None)
     if len(cad.xy) < min_points:
         return None
     best: MoveFit | None = None
     for name, M in moves:
         if np.max(np.linalg.norm(project(pe.K, transform_points(T @ M, V)) - uv0, axis=1)) < min_px:
             continue
-        c = contour(T @ M)
+        c = contour(M)
         g0, ga = _versus(c, cad, min_changed), _versus(c, absent, min_changed)
         if g0 is None or ga is None:  # the move changes (next to) nothing in view
             continue

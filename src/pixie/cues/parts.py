@@ -25,10 +25,13 @@ Per part (:class:`PartSupport`):
 - ``move`` / ``move_gain`` (with ``moves``, ``config.parts.moves``, off by default): the 3D move of a less supported
   part (shifted along / turned about the model's axes) that the photo supports best, and by how much
   (:mod:`pixie.cues.part_moves`); a part whose move gains ``move_gain`` is ``displaced``, with the move in words.
+- ``size`` / ``size_gain`` (with ``resizes``, ``config.parts.resizes``, off by default): the same for the part made
+  longer or shorter along one of the model's axes, one end kept (:func:`pixie.cues.part_moves.part_resizes`); a
+  part whose resize gains ``resize_gain`` is ``wrong`` (another part of its family: a longer bolt, a 2x6 brick).
 
 :func:`judge_parts` turns these into verdicts: ``not visible`` (too little of it to judge), ``missing``
 (its contour is unsupported and no shift finds it), ``displaced`` (unsupported where it should be, fully
-supported nearby), ``present``. Thresholds are ``config.parts`` (calibrated on the defects benchmark,
+supported nearby), ``wrong`` (better supported as another size), ``present``. Thresholds are ``config.parts`` (calibrated on the defects benchmark,
 ``bench/defects_parts.py``).
 
 >>> parts = part_support(renderer, mesh.face_parts, mesh.part_names, pe, T)
@@ -49,7 +52,7 @@ from pixie.geometry.camera import rotation_angle_deg
 from pixie.geometry.collide import PartSolids, collides, part_solids
 from pixie.geometry.mesh import Mesh, from_arrays
 from pixie.cues.part_moves import (MoveFit, explain_away, explained, move_evidence, near_maps, part_contours,
-                                   part_moves)
+                                   part_moves, part_resizes)
 from pixie.geometry.render import Renderer
 from pixie.pose.results import SUSPECT_VERDICTS
 
@@ -57,7 +60,7 @@ __all__ = ["VERDICTS", "PartSupport", "report_kwargs", "part_renderers", "comple
            "part_score", "judge_parts", "robust_part_fit",
            "hidden_from_runner_up", "is_flip_runner_up"]
 
-VERDICTS = ("present", "missing", "displaced", "not visible")
+VERDICTS = ("present", "missing", "displaced", "wrong", "not visible")
 
 
 @dataclass(kw_only=True)
@@ -83,6 +86,9 @@ class PartSupport:
     move: str = ""  # that move, in words ('+x 8.0 mm', 'turned 90 deg about z'); '' when none was tried
     move_support: float = 0.0  # the support of the moved part's own contour pixels (where it differs) at that move
     move_explained_by: int = -1  # another part whose move explains the same pixels better (explain_away), or -1
+    size_gain: float = 0.0  # the best resize's support gain (part_resizes, move_evidence): a part of the wrong size
+    size: str = ""  # that resize, in words ('1.5x as long along z, low end kept'); '' when none was tried
+    size_support: float = 0.0  # the support of the resized part's own contour pixels at that resize
     verdict: str = ""
     judged_at: str = ""  # 'runner-up': hidden at the chosen pose, judged at the runner-up pose (config.parts.alt_gap)
     uv: np.ndarray = field(default_factory=lambda: np.zeros((0, 2)), repr=False)  # its contour points, photo px
@@ -98,7 +104,8 @@ class PartSupport:
                 "revealed_support": round(self.revealed, 4), "n_revealed": self.n_revealed,
                 "exclusive_shifted_support": round(self.exclusive_shifted, 4),
                 "move_gain": round(self.move_gain, 4), "move": self.move, "move_support": round(self.move_support, 4),
-                "move_explained_by": self.move_explained_by, "judged_at": self.judged_at}
+                "move_explained_by": self.move_explained_by, "size_gain": round(self.size_gain, 4), "size": self.size,
+                "size_support": round(self.size_support, 4), "judged_at": self.judged_at}
 
     @classmethod
     def from_dict(cls, d: dict) -> "PartSupport":
@@ -109,7 +116,8 @@ class PartSupport:
                    n_exclusive=d.get("n_exclusive", 0), revealed=d.get("revealed_support", 0.0),
                    n_revealed=d.get("n_revealed", 0), exclusive_shifted=d.get("exclusive_shifted_support", 0.0),
                    move_gain=d.get("move_gain", 0.0), move=d.get("move", ""), move_support=d.get("move_support", 0.0),
-                   move_explained_by=d.get("move_explained_by", -1), judged_at=d.get("judged_at", ""))
+                   move_explained_by=d.get("move_explained_by", -1), size_gain=d.get("size_gain", 0.0),
+                   size=d.get("size", ""), size_support=d.get("size_support", 0.0), judged_at=d.get("judged_at", ""))
 
 
 def report_kwargs(pc: PartsConfig) -> tuple[dict, dict]:
@@ -118,22 +126,27 @@ def report_kwargs(pc: PartsConfig) -> tuple[dict, dict]:
                    step_frac=pc.step_frac, detail_px=pc.detail_px, contrast_px=pc.contrast_px,
                    kinds=tuple(PART_KINDS.index(k) for k in pc.kinds),
                    moves=pc.moves, min_visible=pc.min_visible, move_below=pc.move_below,
-                   move_changed=pc.move_changed, move_px=pc.move_px, move_collide=pc.move_collide)
+                   move_changed=pc.move_changed, move_px=pc.move_px, move_collide=pc.move_collide,
+                   resizes=pc.resizes)
     judge = dict(flag_below=pc.flag_below, colour_weight=pc.colour_weight, revealed_weight=pc.revealed_weight,
                  shift_weight=pc.shift_weight, supported_above=pc.supported_above, shift_gain=pc.shift_gain,
                  found_shifted=pc.found_shifted, min_points=pc.min_points, min_visible=pc.min_visible,
-                 move_gain=pc.move_gain if pc.moves else float("inf"))
+                 move_gain=pc.move_gain if pc.moves else float("inf"),
+                 resize_gain=pc.resize_gain if pc.resizes else float("inf"))
     return support, judge
 
 
 def part_renderers(mesh: Mesh) -> list[Renderer]:
-    """One renderer per part of ``mesh`` (its own triangles; for the visible fractions)."""
+    """One renderer per part of ``mesh`` (its own triangles, in the mesh's order, and only its own vertices, so that
+    a render casts rays over the part's projection, not the whole model's; for the visible fractions and the moves)."""
     if mesh.face_parts is None:
         return []
     out = []
     for k in range(mesh.n_parts):
         sel = mesh.face_parts == k
-        sub = from_arrays(mesh.vertices, mesh.faces[sel] if sel.any() else mesh.faces[:1], name=f"{mesh.name}:{k}")
+        f = mesh.faces[sel] if sel.any() else mesh.faces[:1]
+        used, inv = np.unique(f, return_inverse=True)
+        sub = from_arrays(mesh.vertices[used], inv.reshape(f.shape), name=f"{mesh.name}:{k}")
         out.append(Renderer(sub, smooth_normals=False))
     return out
 
@@ -210,7 +223,7 @@ def part_support(renderer: Renderer, face_parts: np.ndarray, part_names, pe: Pho
                  complements: list[tuple[Renderer, np.ndarray]] | None = None,
                  moves: bool = False, min_visible: float = 0.2, move_below: float = 0.9, move_changed: float = 0.3,
                  move_px: float = 4.0, move_collide: bool = True, solids: PartSolids | None = None,
-                 detail_px: float = 0.0, contrast_px: int = 3) -> list[PartSupport]:
+                 detail_px: float = 0.0, contrast_px: int = 3, resizes: bool = False) -> list[PartSupport]:
     """Every part's support at pose ``T`` (verdicts not yet set: :func:`judge_parts`).
 
     Parameters
@@ -240,6 +253,9 @@ def part_support(renderer: Renderer, face_parts: np.ndarray, part_names, pe: Pho
         :func:`coarse_pixels`): the studs a missing brick uncovers, which the photo does not resolve
     contrast_px : a contour pixel of the model with the part (without it) belongs to the exclusive (revealed)
         contour only when the other model has no contour pixel of a like orientation within this many crop px
+    resizes : also test the part longer or shorter along the model's axes (:func:`part_resizes`: ``size_gain`` and
+        ``size``), for the parts the 3D moves would test (``min_visible``, ``move_below``, ``move_changed``,
+        ``move_px``, ``move_collide`` apply): a part of the wrong size
     """
     face_parts = np.asarray(face_parts)
     n_parts = len(part_names)
@@ -306,13 +322,15 @@ def part_support(renderer: Renderer, face_parts: np.ndarray, part_names, pe: Pho
     med = float(np.median(judged)) if judged else 0.0
     for p in out:
         p.relative = float(p.support / med) if med > 0 else 0.0
-    if moves:  # 3D moves of the parts the photo supports less than the median part (present parts: no cost)
+    if moves or resizes:  # 3D moves / resizes of the parts the photo supports less than the median part
         fits: dict[int, MoveFit] = {}
         for p in out:
             k = p.index
-            if (p.n_points >= min_points and p.visible >= min_visible and p.relative < move_below
+            if not (p.n_points >= min_points and p.visible >= min_visible and p.relative < move_below
                     and k < len(complements) and k < len(renderers)):
-                tried = part_moves(whole, k)
+                continue
+            for family in (part_moves,) * moves + (part_resizes,) * resizes:
+                tried = family(whole, k)
                 if move_collide:
                     solids = solids if solids is not None else part_solids(whole)
                     tried = [(name, M) for name, M in tried if not collides(solids, k, M)]
@@ -320,7 +338,11 @@ def part_support(renderer: Renderer, face_parts: np.ndarray, part_names, pe: Pho
                                   max_bin_gap=max_bin_gap, kinds=kinds, step_mm=step_mm, min_points=min_points,
                                   min_changed=max(min_points, int(np.ceil(move_changed * p.n_points))),
                                   min_px=move_px)
-                if f is not None:
+                if f is None:
+                    continue
+                if family is part_resizes:
+                    p.size_gain, p.size, p.size_support = f.gain, f.name, f.support
+                else:
                     p.move_gain, p.move, p.move_support = f.gain, f.name, f.support
                     if f.gain > 0:
                         fits[k] = f
@@ -362,7 +384,8 @@ def part_score(p: PartSupport, colour_weight: float = 0.0, colour_median: float 
 def judge_parts(parts: list[PartSupport], *, flag_below: float = 0.6, colour_weight: float = 0.0,
                 revealed_weight: float = 0.0, shift_weight: float = 0.0, supported_above: float = 1.0,
                 shift_gain: float = 0.4, found_shifted: float = 0.97, min_points: int = 12,
-                min_visible: float = 0.2, move_gain: float = float("inf")) -> list[PartSupport]:
+                min_visible: float = 0.2, move_gain: float = float("inf"),
+                resize_gain: float = float("inf")) -> list[PartSupport]:
     """Set each part's verdict (in place; returns ``parts``); supports are relative to the median judged part.
 
     ``not visible``: fewer than ``min_points`` visible contour pixels or less than ``min_visible`` of it in view.
@@ -374,7 +397,9 @@ def judge_parts(parts: list[PartSupport], *, flag_below: float = 0.6, colour_wei
     others are ``present``. On repetitive assemblies (LEGO studs) a shift also finds a neighbour's edges, hence the
     strict ``found_shifted``. A part whose best 3D move (:func:`move_evidence`) gains at least ``move_gain`` of
     support is ``displaced`` whatever the rest says (its ``move`` says how), unless another part's move that also
-    passes explains the same pixels better (``move_explained_by``, :func:`explain_away`).
+    passes explains the same pixels better (``move_explained_by``, :func:`explain_away`). A part whose best resize
+    (:func:`part_resizes`) gains at least ``resize_gain`` (and more than a passing move) is ``wrong``: a part of
+    another size is mounted there (its ``size`` says how).
     """
     judged = [p for p in parts if p.n_points >= min_points and p.visible >= min_visible]
     med = float(np.median([p.support for p in judged])) if judged else 0.0
@@ -382,6 +407,8 @@ def judge_parts(parts: list[PartSupport], *, flag_below: float = 0.6, colour_wei
     for p in parts:
         if p.n_points < min_points or p.visible < min_visible or med <= 0:
             p.verdict = "not visible"
+        elif p.size and p.size_gain >= resize_gain and not (p.move and p.move_gain >= max(move_gain, p.size_gain)):
+            p.verdict = "wrong"
         elif p.move and p.move_gain >= move_gain and not (
                 0 <= p.move_explained_by < len(parts) and parts[p.move_explained_by].move_gain >= move_gain):
             p.verdict = "displaced"
@@ -416,7 +443,8 @@ def robust_part_fit(renderer: Renderer, face_parts: np.ndarray, part_names, pe: 
     renderers = renderers if renderers is not None else part_renderers(whole)
     complements = complements if complements is not None else complement_renderers(
         whole, smooth_normals=renderer.smooth_normals)
-    if support_kw.get("moves") and support_kw.get("move_collide", True) and solids is None:
+    if ((support_kw.get("moves") or support_kw.get("resizes")) and support_kw.get("move_collide", True)
+            and solids is None):
         solids = part_solids(whole)  # once for both reports
     ps = judge_parts(part_support(renderer, face_parts, part_names, pe, T, renderers=renderers,
                                   complements=complements, solids=solids, **support_kw),

@@ -166,7 +166,7 @@ class PoseResult:
         }
 
 
-SUSPECT_VERDICTS = ("missing", "displaced")  # the part report's verdicts that flag a part (pixie.cues.parts)
+SUSPECT_VERDICTS = ("missing", "displaced", "wrong")  # the part report's verdicts that flag a part (pixie.cues.parts)
 PARTS_NOTE = ("per part of the CAD model at the final pose: support = share of its visible contour pixels "
               "(silhouette, depth steps, seams) within parts.fit_px of a same-orientation photo edge; relative = "
               "support / the median part's; shifted_support = the best support with the contour slid up to "
