@@ -180,13 +180,18 @@ def test_a_removed_part_is_reported_missing_after_alignment_and_the_complete_ass
     assert n_pose >= 10 and n_missing >= 10 and n_clean >= 10, (n_pose, n_missing, n_clean)
 
 
+def _part_box(mesh, k: int) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """Part ``k``'s vertices and the low / high corners of their box (object frame)."""
+    V = mesh.vertices[np.unique(mesh.faces[mesh.face_parts == k])]
+    return V, V.min(axis=0), V.max(axis=0)
+
+
 def test_part_moves_are_rigid_moves_along_and_about_the_model_axes(lego):
     """Translations by fractions of the part's extent along x / y / z (both signs), turns about the axes through the
     part's box centre; every move is rigid and a turn keeps the centre where it is."""
     mesh = lego["mesh"]
     k = 1
-    V = mesh.vertices[np.unique(mesh.faces[mesh.face_parts == k])]
-    lo, hi = V.min(axis=0), V.max(axis=0)
+    V, lo, hi = _part_box(mesh, k)
     moves = part_moves(mesh, k)
     names = [n for n, _ in moves]
     assert len(names) == len(set(names))
@@ -499,13 +504,13 @@ def test_the_runner_up_rule_is_configured_and_checked():
 
 def test_part_resizes_scale_one_model_axis_and_keep_one_end(lego):
     """Each resize scales the part along x, y or z by its factor, keeps the low or the high end of the part's box
-    where it is, leaves the other two axes alone, and is not rigid; none moves the free end by under 1 mm."""
+    where it is, leaves the other two axes alone, and is not rigid (this brick is thick enough along every axis for
+    all of them to be tried); the moves stay rigid."""
     from pixie.cues.part_moves import RESIZE_FACTORS, is_rigid, part_resizes
 
     mesh = lego["mesh"]
     k = 1
-    V = mesh.vertices[np.unique(mesh.faces[mesh.face_parts == k])]
-    lo, hi = V.min(axis=0), V.max(axis=0)
+    V, lo, hi = _part_box(mesh, k)
     sizes = part_resizes(mesh, k)
     names = [n for n, _ in sizes]
     assert len(names) == len(set(names)) and len(sizes) == 2 * 3 * len(RESIZE_FACTORS)  # every axis > 3 mm thick
