@@ -17,7 +17,7 @@ from pixie.geometry.collide import collides, part_solids
 from pixie.geometry.mesh import component_parts, from_arrays, load_mesh
 from pixie.geometry.render import Renderer
 from pixie.synth.assemblies import lego_assembly
-from pixie.synth.defects import missing_part, passes_through, rotated_part, shifted_part
+from pixie.synth.defects import missing_part, rotated_part, shifted_part
 from pixie.synth.photo import Material, random_background, render_rgb
 from pixie.synth.scenes import write_parts_glb
 
@@ -234,12 +234,14 @@ def test_a_shifted_or_turned_brick_is_reported_displaced_with_its_move_and_a_com
     about its centre). 12 viewpoints each; measured (config.parts with moves on, session 31, parts.contrast_px 3):
     shifted 11 / 12 displaced, the right axis and sign in 12 / 12; turned 10 / 12 flagged (as 'missing': the search
     turns about the centre only; contrast_px 1: 12 / 12); complete assemblies: no part displaced in 12 / 12."""
-    mesh = lego["mesh"]
-    tol = part_solids(mesh).tolerance
+    mesh, asm, solids = lego["mesh"], lego["asm"], lego["solids"]
+
+    def passes(d) -> bool:  # its moved part passes into another (the same draws as synth.defects.passes_through, 30x faster)
+        k = d.defect["part"]
+        return collides(solids, k, d.parts[k].transform @ np.linalg.inv(asm.parts[k].transform))
 
     def physical(make, seed):  # the first draw from seed, seed + 100, ... that a physical assembly can show
-        return next(d for d in (make(np.random.default_rng(seed + 100 * i)) for i in range(20))
-                    if not passes_through(d, tol))
+        return next(d for d in (make(np.random.default_rng(seed + 100 * i)) for i in range(20)) if not passes(d))
 
     n_shift = n_axis = n_turn = n_clean = 0
     for seed in range(12):
