@@ -181,19 +181,47 @@ def _median(vals):
 # ------------------------------------------------------------------------------------------ pipeline
 
 
+def query_mask(mode: str, ds: BopDataset, t: Target, img: np.ndarray, K: np.ndarray, bbox, objects: ObjectCache):
+    """The object mask given with the box: none, ``render`` (the target's visible pixels among the image's annotated
+    GT instances, rendered at their GT poses: an upper bound for a segmenter) or ``grabcut``
+    (:func:`pixie.pipeline.query.grabcut_mask` from the box alone)."""
+    if mode == "none":
+        return None
+    if mode == "grabcut":
+        from pixie.pipeline.query import grabcut_mask
+        return grabcut_mask(img, bbox)
+    h, w = img.shape[:2]
+    deps = {}
+    for g in ds.instances(t.scene_id, t.im_id):
+        r = objects.renderer(g.obj_id).render(g.T_cam_from_obj, K, h, w, roi=None)
+        deps.setdefault(g.obj_id, []).append(np.where(r.tri_ids >= 0, r.depth, np.inf))
+    mine = min(deps[t.obj_id], key=lambda d: np.isfinite(d).sum() * -1)
+    others = [d for oid, ds_ in deps.items() for d in ds_ if d is not mine]
+    front = np.minimum.reduce(others) if others else np.full((h, w), np.inf)
+    m = np.isfinite(mine) & (mine <= front)
+    return m if m.any() else None
+
+
 def run_pipeline(ds: BopDataset, targets: list[Target], cfg: PixieConfig, name: str, out_dir: Path,
                  crop: str = "visib", tag: str = "", objects: ObjectCache | None = None, ar: bool = True,
-                 progress=print, reverse: bool = False) -> dict:
-    """Run the estimator on ``targets``; resumable through ``<out>/runs/<hash>/targets.jsonl``."""
+                 progress=print, reverse: bool = False, mask: str = "none", shard: tuple[int, int] | None = None
+                 ) -> dict | None:
+    """Run the estimator on ``targets``; resumable through ``<out>/runs/<hash>/targets.jsonl``.
+
+    ``shard`` (k, n): only every n-th target from the k-th, into the same journal (processes side by side), and no
+    summary (None); a run without it afterwards finds them all and summarises."""
     objects = objects or ObjectCache(ds)
-    run_hash = short_hash({"cfg": config_for_hash(cfg), "crop": crop, "tag": tag})
+    run_hash = short_hash({"cfg": config_for_hash(cfg), "crop": crop, "tag": tag,
+                           **({"mask": mask} if mask != "none" else {})})
     run_dir = out_dir / "runs" / run_hash
     run_dir.mkdir(parents=True, exist_ok=True)
     (run_dir / "config.json").write_text(json.dumps({"name": name, "preset": cfg.preset, "cfg": cfg.to_dict(), "crop": crop,
                                                      "tag": tag}, indent=1))
     done = Journal(run_dir / "targets.jsonl", key=lambda d: (d["scene_id"], d["im_id"], d["obj_id"]))
-    todo = [t for t in targets if (t.scene_id, t.im_id, t.obj_id) not in done]
-    progress(f"[{name}] {len(targets)} targets, {len(targets) - len(todo)} cached, run {run_hash}")
+    todo = [t for i, t in enumerate(targets) if (t.scene_id, t.im_id, t.obj_id) not in done
+            and (shard is None or i % shard[1] == shard[0])]
+    progress(f"[{name}] {len(targets)} targets, {len(done)} cached, {len(todo)} to run"
+             f"{f' (shard {shard[0]}/{shard[1]})' if shard else ''}, run {run_hash}")
     matcher = None
     by_obj: dict[int, list[Target]] = {}
     for t in todo:
@@ -213,7 +241,8 @@ def run_pipeline(ds: BopDataset, targets: list[Target], cfg: PixieConfig, name: 
             K = ds.camera(t.scene_id, t.im_id).K
             bbox = g.box_visib if crop == "visib" else g.box_obj
             t0 = time.perf_counter()
-            res = est.estimate(img, K, bbox=bbox)
+            m = query_mask(mask, ds, t, img, K, bbox, objects)
+            res = est.estimate(img, K, bbox=bbox, mask=m)
             dt = time.perf_counter() - t0
             err = pose_errors(od, res.T_cam_from_obj, g.T_cam_from_obj)
             # the distinct hypotheses (multi-hypothesis output): is any of them right?
@@ -246,6 +275,9 @@ def run_pipeline(ds: BopDataset, targets: list[Target], cfg: PixieConfig, name: 
                 ok = sum(r["add_ok"] for r in done.records.values())
                 progress(f"  [{name}] {n_run}/{len(todo)}  {(time.perf_counter() - t_start) / n_run:.2f} s/target  "
                          f"ADD<0.1d so far {ok}/{len(done)}")
+    if shard is not None:
+        progress(f"[{name}] shard {shard[0]}/{shard[1]} done: {n_run} targets")
+        return None
     recs = [done.get((t.scene_id, t.im_id, t.obj_id)) for t in targets]
     return summarise(ds, targets, recs, cfg, name, run_dir, objects, ar)
 
@@ -327,6 +359,10 @@ def main(argv: list[str] | None = None) -> int:
     ap.add_argument("--config", action="append", default=[], help="NAME:section.key=value,section.key=value")
     ap.add_argument("--oracle", action="store_true", help="match each target only against a GT-view reference")
     ap.add_argument("--crop", choices=("visib", "obj"), default="visib", help="query box: bbox_visib (default) or bbox_obj")
+    ap.add_argument("--mask", choices=("none", "render", "grabcut"), default="none",
+                    help="an object mask with the box: rendered from the GT (upper bound) or GrabCut from the box")
+    ap.add_argument("--shard", default=None, help="K/N: run only every N-th target from the K-th (no summary; "
+                    "run again without --shard to summarise)")
     ap.add_argument("--tag", default="", help="part of the run hash (bump it after changing the estimator code)")
     ap.add_argument("--no-ar", action="store_true", help="skip AR (no VSD)")
     ap.add_argument("--reverse-objects", action="store_true", help="process objects in decreasing id order "
@@ -353,7 +389,10 @@ def main(argv: list[str] | None = None) -> int:
             (args.out / f"oracle_{name}.json").write_text(json.dumps(r, indent=1, default=float))
         else:
             r = run_pipeline(ds, targets, cfg, name, args.out, crop=args.crop, tag=args.tag, objects=objects,
-                             ar=not args.no_ar, reverse=args.reverse_objects)
+                             ar=not args.no_ar, reverse=args.reverse_objects, mask=args.mask,
+                             shard=tuple(int(x) for x in args.shard.split("/")) if args.shard else None)
+            if r is None:
+                continue
             (args.out / f"{name}.json").write_text(json.dumps(r, indent=1, default=float))
         rows.append(r)
         print(format_table([r], oracle=args.oracle).splitlines()[1])

@@ -135,3 +135,27 @@ def test_templates_are_stored_with_the_reference_set(proc_mesh, tmp_path):
     for k, v in tpl.to_arrays().items():
         np.testing.assert_array_equal(np.asarray(getattr(back, k)), v)
     assert back.size == 64 and back.n_views == 10 and back.n_points == 32
+
+
+def test_an_object_mask_leaves_the_clutters_edges_out_of_the_response_maps():
+    """With a mask, only the photo's edges within ``mask_grow_px`` crop px of it answer a template; without one the
+    clutter beside the object answers too."""
+    img = np.full((H, W, 3), 40, np.uint8)
+    img[200:280, 300:380] = 200  # the object: an 80 px square
+    img[150:330, 283:286] = 230  # clutter: a bar 14 px left of it (~11 crop px), inside the crop around the box
+    obj = np.zeros((H, W), bool)
+    obj[200:280, 300:380] = True
+    box = np.array([300.0, 200.0, 380.0, 280.0])
+    plain = prepare_query(img, box)
+    masked = prepare_query(img, box, mask=obj, mask_grow_px=5)
+
+    def at(q, x, y):  # crop-pixel edges within 2 px of a photo point (inside the crop)
+        c = np.linalg.solve(np.vstack([q.crop.A, [0, 0, 1]]), [x, y, 1.0])[:2]
+        cx, cy = int(round(c[0])), int(round(c[1]))
+        assert 2 <= cx < q.bins.shape[1] - 2 and 2 <= cy < q.bins.shape[0] - 2
+        return q.bins[cy - 2:cy + 3, cx - 2:cx + 3] < 255
+
+    assert at(plain, 283, 240).any() and not at(masked, 283, 240).any()  # the clutter's edge is gone
+    assert at(plain, 300, 240).any() and at(masked, 300, 240).any()  # the object's own edge stays
+    assert at(masked, 340, 200).any() and at(masked, 379, 260).any()
+    assert masked.resp.max() > 0 and (masked.bins < 255).sum() < (plain.bins < 255).sum()

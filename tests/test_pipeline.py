@@ -184,3 +184,22 @@ def test_real_lmo_images(lmo_setup, lmo_dataset, obj_id):
     rot, trans = pose_errors(res.T_cam_from_obj, gt.T_cam_from_obj, ests[obj_id].refs.mesh.diameter)
     print(f"obj {obj_id} scene {t.scene_id} im {t.im_id}: {rot:.1f} deg, {100 * trans:.0f}% d, "
           f"timings { {k: round(v, 3) for k, v in res.timings.items()} }")
+
+
+def test_a_box_alone_is_segmented_when_asked_and_the_mask_reaches_the_shape_and_alignment_stages(e2e, proc_mesh):
+    """``query.segment=grabcut``: a box without a mask gets the object's pixels by colour; the query keeps them as
+    it keeps a given mask (keypoints, the edge templates' response maps, the alignment's visible region)."""
+    refs, cfg, matcher = e2e
+    T = generic_pose(proc_mesh, 40.0, 30.0, 20.0)
+    img, bbox, true_mask = render_photo(proc_mesh, T, K_Q, seed=5)
+    c = copy.deepcopy(cfg)
+    c.query.segment = "grabcut"
+    c.shape.use_mask = True
+    q = PoseEstimator(refs, c, matcher=matcher).prepare(img, K_Q, bbox=bbox)
+    assert q.box_source == "bbox" and q.mask is not None
+    iou = (q.mask & true_mask).sum() / (q.mask | true_mask).sum()
+    x, y, w, h = bbox
+    box_iou = true_mask.sum() / (w * h)
+    assert iou > 0.85 and iou > box_iou + 0.1
+    plain = PoseEstimator(refs, cfg, matcher=matcher).prepare(img, K_Q, bbox=bbox)
+    assert plain.mask is None  # the default keeps the box alone

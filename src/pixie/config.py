@@ -37,6 +37,7 @@ CHOICES: dict[str, tuple[str, ...]] = {
     "pose.scoring": ("inliers", "combined", "similarity", "combined_similarity", "excess", "combined_excess"),
     "pose.candidate_ranking": ("excess", "count"),
     "pose.views": ("all", "canonical"),
+    "query.segment": ("none", "grabcut"),
 }
 # Lists of numbers that may be empty or negative, and allowed list lengths.
 SIGNED_LISTS = {"align.confidence"}
@@ -80,6 +81,7 @@ RANGES: dict[str, tuple[float | None, float | None, bool]] = {
     "shape.w_region": (0, None, True),
     "shape.refine_hypotheses": (0, None, True),
     "shape.refine_box_px": (8, 4096, True),
+    "shape.mask_px": (0, 100, True),
 }
 
 
@@ -195,6 +197,9 @@ class QueryConfig(_Section):
 
     crop_pad: float = 1.2  # same meaning as refs.crop_pad, applied to the given bbox / mask box
     mask_keypoints: bool = True  # drop query keypoints outside a given mask
+    # a box without a mask: 'grabcut' segments the object's pixels in it by colour (pixie.pipeline.query.grabcut_mask)
+    # and uses them as a given mask would be used; 'none' keeps the box alone
+    segment: str = "none"
 
 
 @dataclass
@@ -308,6 +313,10 @@ class ShapeConfig(_Section):
     before_render: bool = False  # verify before render-at-estimate refinement (which then refines the best fused)
     refine_hypotheses: int = 0  # best verified hypotheses refined by region-based refinement (pixie.cues.region); 0: off
     refine_box_px: float = 96.0  # refinement crop: the box's longer side in px
+    # with an object mask (given, or segmented: query.segment), the templates answer only to the photo's edges
+    # within mask_px crop px of it (the clutter's edges around the object are left out)
+    use_mask: bool = False
+    mask_px: int = 5
 
 
 def parse_override(item: str) -> tuple[str, str]:

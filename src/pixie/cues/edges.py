@@ -95,8 +95,12 @@ def response_maps(bins: np.ndarray, spread: int = 5, power: float = 2.0) -> np.n
 
 
 def prepare_query(image: np.ndarray, box_xyxy: np.ndarray, box_px: float = 64.0, pad: float = 1.6,
-                  sigma: float = 1.0, min_mag: float = 6.0, spread: int = 5, power: float = 2.0) -> EdgeQuery:
-    """Crop the photo around ``box_xyxy`` so that its longer side spans ``box_px`` px and build response maps."""
+                  sigma: float = 1.0, min_mag: float = 6.0, spread: int = 5, power: float = 2.0,
+                  mask: np.ndarray | None = None, mask_grow_px: int = 5) -> EdgeQuery:
+    """Crop the photo around ``box_xyxy`` so that its longer side spans ``box_px`` px and build response maps.
+
+    With an object ``mask`` (H, W) only the edges within ``mask_grow_px`` crop px of it count: the clutter's edges
+    around the object no longer answer a template."""
     w, h = box_xyxy[2] - box_xyxy[0], box_xyxy[3] - box_xyxy[1]
     L = max(w, h)
     size = int(round(box_px * pad))
@@ -104,7 +108,13 @@ def prepare_query(image: np.ndarray, box_xyxy: np.ndarray, box_px: float = 64.0,
     ones = np.full(image.shape[:2], 255, np.uint8)
     valid = cv2.warpAffine(ones, crop.A, (size, size), flags=cv2.WARP_INVERSE_MAP | cv2.INTER_NEAREST,
                            borderMode=cv2.BORDER_CONSTANT, borderValue=0) > 0
-    bins, mag = quantised_orientations(crop.image, sigma, min_mag, valid)
+    edge_valid = valid
+    if mask is not None:
+        mc = cv2.warpAffine(np.asarray(mask, np.uint8), crop.A, (size, size),
+                            flags=cv2.WARP_INVERSE_MAP | cv2.INTER_NEAREST, borderValue=0)
+        k = 2 * int(mask_grow_px) + 1
+        edge_valid = valid & (cv2.dilate(mc, cv2.getStructuringElement(cv2.MORPH_ELLIPSE, (k, k))) > 0)
+    bins, mag = quantised_orientations(crop.image, sigma, min_mag, edge_valid)
     resp = response_maps(bins, spread, power)
     s = size / (pad * L)
     return EdgeQuery(resp, crop, np.array([w * s, h * s]), np.full(2, (size - 1) / 2.0), mag, bins, valid)

@@ -93,8 +93,10 @@ class ShapeCues:
         return self._renderer
 
     # ------------------------------------------------------------------------------------ retrieval
-    def query(self, image: np.ndarray, box_xyxy: np.ndarray) -> EdgeQuery:
-        return prepare_query(image, box_xyxy, **self.query_kw)
+    def query(self, image: np.ndarray, box_xyxy: np.ndarray, mask: np.ndarray | None = None) -> EdgeQuery:
+        """Response maps of the box's crop (:func:`pixie.cues.edges.prepare_query`; with ``mask``, only the edges
+        near the object mask)."""
+        return prepare_query(image, box_xyxy, mask=mask, **self.query_kw)
 
     def template_pose(self, q: EdgeQuery, K: np.ndarray, view: int, angle: float, scale: float,
                       origin: np.ndarray) -> np.ndarray:
@@ -196,4 +198,4 @@ def shape_cues(refs, cfg) -> ShapeCues:
     ensure_templates(refs, cfg, save=False)
     tpl = ContourTemplates.from_arrays(refs.templates)
     return ShapeCues(refs.mesh, tpl, n_rolls=cfg.rolls, crease_weight=cfg.crease_weight,
-                     query_kw={"min_mag": cfg.min_mag}, region_k=cfg.region_k, region_weight=cfg.region_weight)
+                     query_kw={"min_mag": cfg.min_mag, "mask_grow_px": cfg.mask_px}, region_k=cfg.region_k, region_weight=cfg.region_weight)

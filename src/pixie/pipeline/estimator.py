@@ -63,7 +63,8 @@ from pixie.pose.solve import (
     solve_pnp_ransac,
 )
 from pixie.pose.plausibility import pose_contradictions, pose_warnings
-from pixie.pipeline.query import QueryCrop, bbox_from_mask, check_bbox, check_query_mask, square_crop
+from pixie.pipeline.query import (QueryCrop, bbox_from_mask, check_bbox, check_query_mask, grabcut_mask,
+                                  square_crop)
 from pixie.references.set import ReferenceSet, add_features
 from pixie.cues.refine import aligned_correspondences, render_in_crop
 from pixie.geometry.collide import part_solids
@@ -383,6 +384,8 @@ class PoseEstimator:
         box = check_bbox(bbox, image.shape[:2])
         if mask is not None:
             check_query_mask(mask, image.shape[:2], box)
+        elif self.cfg.query.segment == "grabcut":  # the object's pixels in the box, by colour (None: it failed)
+            mask = grabcut_mask(image, [box[0], box[1], box[2] - box[0], box[3] - box[1]])
         use_mask = mask if (mask is not None and self.cfg.query.mask_keypoints) else None
         crops = self.crops(image, box, use_mask)
         feats = [self.matcher.extract(c.image, mask=c.mask) for c in crops]
@@ -596,7 +599,7 @@ class PoseEstimator:
         sc, cues = self.cfg.shape, self._shape
         K, box = q.K, q.box
         t = time.perf_counter()
-        q.edges = cues.query(q.image, box)
+        q.edges = cues.query(q.image, box, q.mask if sc.use_mask else None)
         cands = cues.retrieve(q.edges, K, sc.candidates)
         timings["edge_retrieval"] = time.perf_counter() - t
         t = time.perf_counter()

@@ -201,3 +201,32 @@ def square_crop(image: np.ndarray, box_xyxy: np.ndarray, pad: float, size: int,
     if mask is not None:
         m = cv2.warpAffine(mask.astype(np.uint8), A, (size, size), flags=cv2.WARP_INVERSE_MAP | cv2.INTER_NEAREST) > 0
     return QueryCrop(image=img, mask=m, A=A, box_xyxy=np.asarray(box_xyxy, np.float64), angle_rad=angle_rad)
+
+
+def grabcut_mask(image: np.ndarray, bbox_xywh, grow_px: int = 3, context: float = 0.5,
+                 iters: int = 5) -> np.ndarray | None:
+    """The object's pixels inside a box, segmented by colour alone (OpenCV's GrabCut initialised from the box).
+
+    The box's surroundings (``context`` x its size on each side) teach the background colours; the box (grown by
+    ``grow_px``) holds the object. Returns an (H, W) bool mask, or None when GrabCut keeps nothing in the box.
+    """
+    h, w = image.shape[:2]
+    x, y, bw, bh = (float(v) for v in bbox_xywh)
+    x0, y0 = max(int(np.floor(x - context * bw)), 0), max(int(np.floor(y - context * bh)), 0)
+    x1, y1 = min(int(np.ceil(x + bw + context * bw)), w), min(int(np.ceil(y + bh + context * bh)), h)
+    roi = np.ascontiguousarray(image[y0:y1, x0:x1, :3])
+    rx0, ry0 = max(int(np.floor(x)) - grow_px - x0, 0), max(int(np.floor(y)) - grow_px - y0, 0)
+    rx1 = min(int(np.ceil(x + bw)) + grow_px - x0, x1 - x0)
+    ry1 = min(int(np.ceil(y + bh)) + grow_px - y0, y1 - y0)
+    if rx1 - rx0 < 2 or ry1 - ry0 < 2:
+        return None
+    gm = np.zeros(roi.shape[:2], np.uint8)
+    bgd, fgd = np.zeros((1, 65), np.float64), np.zeros((1, 65), np.float64)
+    cv2.grabCut(cv2.cvtColor(roi, cv2.COLOR_RGB2BGR), gm, (rx0, ry0, rx1 - rx0, ry1 - ry0), bgd, fgd, iters,
+                cv2.GC_INIT_WITH_RECT)
+    fg = (gm == cv2.GC_FGD) | (gm == cv2.GC_PR_FGD)
+    if not fg.any():
+        return None
+    out = np.zeros((h, w), bool)
+    out[y0:y1, x0:x1] = fg
+    return out
