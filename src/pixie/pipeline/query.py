@@ -222,6 +222,7 @@ def grabcut_mask(image: np.ndarray, bbox_xywh, grow_px: int = 3, context: float 
         return None
     gm = np.zeros(roi.shape[:2], np.uint8)
     bgd, fgd = np.zeros((1, 65), np.float64), np.zeros((1, 65), np.float64)
+    cv2.setRNGSeed(0)  # GrabCut's colour models start from k-means on OpenCV's RNG: the same photo, the same mask
     cv2.grabCut(cv2.cvtColor(roi, cv2.COLOR_RGB2BGR), gm, (rx0, ry0, rx1 - rx0, ry1 - ry0), bgd, fgd, iters,
                 cv2.GC_INIT_WITH_RECT)
     fg = (gm == cv2.GC_FGD) | (gm == cv2.GC_PR_FGD)
