@@ -73,6 +73,13 @@ def parse_config_arg(text: str) -> tuple[str, list[str]]:
     return name, [i.strip() for i in items if i.strip()]
 
 
+def write_json(path: Path | None, obj) -> None:
+    """A bench's JSON output (its folder made first); nothing when ``path`` is None."""
+    if path is not None:
+        path.parent.mkdir(parents=True, exist_ok=True)
+        path.write_text(json.dumps(obj, indent=1))
+
+
 def short_hash(obj) -> str:
     return hashlib.sha1(json.dumps(obj, sort_keys=True, default=str).encode()).hexdigest()[:12]
 

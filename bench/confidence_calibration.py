@@ -20,6 +20,8 @@ from pathlib import Path
 
 import numpy as np
 
+from common import write_json  # noqa: E402  (the bench folder is on sys.path)
+
 BINS = [0.5, 0.55, 0.6, 0.7, 0.8, 0.9, 1.0001]
 
 
@@ -69,9 +71,7 @@ def main(argv: list[str] | None = None) -> int:
     for b in res["bins"]:
         frac = "-" if b["fraction_correct"] is None else f"{b['fraction_correct']:.2f}"
         print(f"[{b['bin'][0]:.2f}, {b['bin'][1]:.2f}) | {b['n']:7d} | {b['correct']:7d} | {frac}")
-    if args.out:
-        args.out.parent.mkdir(parents=True, exist_ok=True)
-        args.out.write_text(json.dumps(res, indent=1))
+    write_json(args.out, res)
     return 0
 
 

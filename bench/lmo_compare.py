@@ -13,14 +13,13 @@ RUN_A / RUN_B: run directories (``out/bench/lmo_pipeline/runs/<hash>``) or their
 from __future__ import annotations
 
 import argparse
-import json
 import sys
 from pathlib import Path
 
 import numpy as np
 
 sys.path.insert(0, str(Path(__file__).resolve().parent))
-from common import DEFAULT_DATASET, select_targets  # noqa: E402
+from common import DEFAULT_DATASET, select_targets, write_json  # noqa: E402
 
 from pixie.app.runner import Journal  # noqa: E402
 from pixie.eval import evaluate  # noqa: E402
@@ -94,9 +93,7 @@ def main(argv=None) -> int:
     for name in names:
         print(f"{name} per object: {res[name]['per_object']}")
     print(f"right only in {names[0]}: {res['only_' + names[0]]}, only in {names[1]}: {res['only_' + names[1]]}")
-    if a.out:
-        a.out.parent.mkdir(parents=True, exist_ok=True)
-        a.out.write_text(json.dumps(res, indent=1))
+    write_json(a.out, res)
     return 0
 
 
