@@ -216,7 +216,7 @@ def run_pipeline(ds: BopDataset, targets: list[Target], cfg: PixieConfig, name: 
     run_dir = out_dir / "runs" / run_hash
     run_dir.mkdir(parents=True, exist_ok=True)
     (run_dir / "config.json").write_text(json.dumps({"name": name, "preset": cfg.preset, "cfg": cfg.to_dict(), "crop": crop,
-                                                     "tag": tag}, indent=1))
+                                                     "tag": tag, "mask": mask}, indent=1))
     done = Journal(run_dir / "targets.jsonl", key=lambda d: (d["scene_id"], d["im_id"], d["obj_id"]))
     todo = [t for i, t in enumerate(targets) if (t.scene_id, t.im_id, t.obj_id) not in done
             and (shard is None or i % shard[1] == shard[0])]

@@ -104,16 +104,15 @@ def prepare_query(image: np.ndarray, box_xyxy: np.ndarray, box_px: float = 64.0,
     w, h = box_xyxy[2] - box_xyxy[0], box_xyxy[3] - box_xyxy[1]
     L = max(w, h)
     size = int(round(box_px * pad))
-    crop = square_crop(image, box_xyxy, pad, size)  # side pad*L -> size px
+    crop = square_crop(image, box_xyxy, pad, size, 0.0, mask)  # side pad*L -> size px (and the mask, if any)
     ones = np.full(image.shape[:2], 255, np.uint8)
     valid = cv2.warpAffine(ones, crop.A, (size, size), flags=cv2.WARP_INVERSE_MAP | cv2.INTER_NEAREST,
                            borderMode=cv2.BORDER_CONSTANT, borderValue=0) > 0
     edge_valid = valid
-    if mask is not None:
-        mc = cv2.warpAffine(np.asarray(mask, np.uint8), crop.A, (size, size),
-                            flags=cv2.WARP_INVERSE_MAP | cv2.INTER_NEAREST, borderValue=0)
+    if crop.mask is not None:
         k = 2 * int(mask_grow_px) + 1
-        edge_valid = valid & (cv2.dilate(mc, cv2.getStructuringElement(cv2.MORPH_ELLIPSE, (k, k))) > 0)
+        near = cv2.dilate(crop.mask.astype(np.uint8), cv2.getStructuringElement(cv2.MORPH_ELLIPSE, (k, k))) > 0
+        edge_valid = valid & near
     bins, mag = quantised_orientations(crop.image, sigma, min_mag, edge_valid)
     resp = response_maps(bins, spread, power)
     s = size / (pad * L)
