@@ -213,9 +213,8 @@ def query_e2e(proc_mesh, matcher_name, build_refs, tmp_path_factory):
     from pixie.references.store import load_reference_set, save_reference_set
     from pixie.synth.e2e import e2e_config
 
-    cfg = e2e_config(matcher_name)
-    cfg.refs.feature_rolls = "first"
-    cfg.match.in_plane = "query"
+    cfg = e2e_config(matcher_name)  # the default preset: roll-0 features, the query rotated, no render refinement
+    assert cfg.refs.feature_rolls == "first" and cfg.match.in_plane == "query" and cfg.refine.render_iters == 0
     matcher = make_matcher(cfg)
     if not os.environ.get("PYTEST_XDIST_WORKER"):
         return build_refs(proc_mesh, cfg.refs, matcher=matcher), cfg, matcher

@@ -212,12 +212,12 @@ def two_copies(proc_mesh, parts, seed: int):
 
 def test_two_instances_give_two_poses(query_est, proc_mesh, scene_parts, line2d_cache):
     """Several instances: each round fills in the instances found so far and searches the photo again. Measured on
-    these 5 seeds (session 11): both copies found in 3 (the second copy's pose 3.8–11.9° off), one in the other two
-    (the second copy proposed, its pose rejected at confidence 0.38 / 0.43); 8 of the 10 copies within 15° / 10 %.
-    Asserted with one scene of margin."""
+    seeds 0-4 with the shipped default (session 36, no render-at-estimate refinement): both copies found in 5 of 5,
+    10 of the 10 copies within 15° / 10 % (session 11, with the refinement: both in 3, 8 of 10). Three seeds are
+    run, asserted with one scene's and one copy's margin."""
     kw = dict(top_k=2, max_instances=2, distance_mm=distance(proc_mesh), cache_dir=line2d_cache / "pixie" / "line2d")
     both, right = 0, 0
-    for seed in range(5):
+    for seed in range(3):
         img, Ts = two_copies(proc_mesh, scene_parts, seed)
         fr = find_objects(query_est, img, K, **kw)
         good = 0
@@ -226,7 +226,7 @@ def test_two_instances_give_two_poses(query_est, proc_mesh, scene_parts, line2d_
                         and abs(r.T_cam_from_obj[2, 3] / T[2, 3] - 1) < 0.1 for r in fr.poses)
         both += len(fr.poses) == 2
         right += good
-    assert both >= 2 and right >= 7, (both, right)
+    assert both >= 2 and right >= 5, (both, right)
 
 
 def test_a_part_of_the_object_does_not_hide_the_whole():

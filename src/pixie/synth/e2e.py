@@ -35,9 +35,11 @@ E2E_POSES = [(35.0, 35.0, 15.0), (-120.0, 25.0, -10.0), (200.0, 50.0, 30.0), (80
 
 
 def e2e_config(matcher_name: str) -> PixieConfig:
-    """The modest reference set of the end-to-end test, the default pipeline otherwise."""
-    cfg = PixieConfig()
-    cfg.refs = RefsConfig(n_fibonacci=40, rotations=8, size=256, encodings=["shade3_edges"])
+    """The modest reference set of the end-to-end test (46 views at 256 px), the shipped ``default`` preset
+    otherwise: roll-0 features, the query crop rotated, no render-at-estimate refinement, shape cues, alignment."""
+    cfg = PixieConfig.from_preset("default")
+    cfg.refs = RefsConfig(n_fibonacci=40, rotations=8, size=256, encodings=["shade3_edges"],
+                          feature_rolls=cfg.refs.feature_rolls)
     cfg.match.matcher = matcher_name
     return cfg
 
