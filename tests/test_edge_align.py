@@ -314,16 +314,17 @@ def test_alignment_with_half_the_part_covered(part):
 @pytest.mark.slow
 def test_alignment_with_its_first_scales_on_a_coarse_crop_converges(part):
     """align.coarse_px: the first two Tukey scales (16 and 8 px) run on a crop where the box spans 100 px instead of 200
-    (a quarter of the render's pixels), then 4 and 2 px on the full crop, as the estimator runs them."""
+    (a quarter of the render's pixels), then 4 and 2 px on the full crop, as the estimator runs them. An option (off):
+    8 of the 12 seeds; measured (session 36) 7 / 8 within 1° / 1 % clean and 7 / 8 half covered (11 / 12 of 12)."""
     from pixie.cues.edge_align import coarse_kwargs
 
     ac = PixieConfig().align
     ac.coarse_px = 100.0
     kw = coarse_kwargs(ac, None)
     assert kw["coarse_schedule"] == (8.0, 4.0) and kw["schedule"] == (4.0, 2.0)
-    for plate, need in ((None, 10), (plate_renderer(), 9)):
-        errs = align_trials(part[0], part[1], ALIGN, n=12, plate=plate, coarse_ac=ac, photo_kw=PHOTO)
-        assert sum(r < 1.0 and dz < 0.01 for r, dz in errs) >= need, errs
+    for plate in (None, plate_renderer()):
+        errs = align_trials(part[0], part[1], ALIGN, n=8, plate=plate, coarse_ac=ac, photo_kw=PHOTO)
+        assert sum(r < 1.0 and dz < 0.01 for r, dz in errs) >= 6, errs
 
 
 def test_region_steps_find_where_the_foreground_posterior_drops():
@@ -358,11 +359,12 @@ def test_alignment_on_a_crop_without_edges_returns_a_finite_pose(part, make_pose
 @pytest.mark.slow
 def test_edge_search_along_the_normal_still_converges_on_rendered_photos(part):
     """search='normal' (every point on the nearest same-orientation edge along its normal; the default until session
-    22): measured 12/12 within 1° / 1 % from 10° / 5 % clean, 11/12 with half the part covered."""
+    22): measured 12/12 within 1° / 1 % from 10° / 5 % clean, 11/12 with half the part covered; session 36: 11 / 12
+    and 10 / 12, of which 7 / 8 and 7 / 8 on the 8 seeds run here (an option, off: the default's tests take 12)."""
     kw = ALIGN | {"search": "normal"}
     for plate in (None, plate_renderer()):
-        errs = align_trials(part[0], part[1], kw, n=12, plate=plate, photo_kw=PHOTO)
-        assert sum(r < 1.0 and dz < 0.01 for r, dz in errs) >= 9, errs
+        errs = align_trials(part[0], part[1], kw, n=8, plate=plate, photo_kw=PHOTO)
+        assert sum(r < 1.0 and dz < 0.01 for r, dz in errs) >= 6, errs
 
 
 def test_alignment_on_real_lmo_crops_returns_finite_poses(lmo_dataset, lmo_meshes):

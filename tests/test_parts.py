@@ -231,9 +231,10 @@ def test_a_shifted_or_turned_brick_is_reported_displaced_with_its_move_and_a_com
     'displaced', and for a shift the move found is along the true axis with the true sign; on the complete
     assembly no part gains parts.move_gain by moving. The defects are those a physical assembly can show (no part
     passed into another: here the only brick that can turn is the 1x6, which the grid puts half a stud off a turn
-    about its centre). 12 viewpoints each; measured (config.parts with moves on, session 31, parts.contrast_px 3):
+    about its centre). Measured on 12 viewpoints (config.parts with moves on, session 31, parts.contrast_px 3):
     shifted 11 / 12 displaced, the right axis and sign in 12 / 12; turned 10 / 12 flagged (as 'missing': the search
-    turns about the centre only; contrast_px 1: 12 / 12); complete assemblies: no part displaced in 12 / 12."""
+    turns about the centre only; contrast_px 1: 12 / 12); complete assemblies: no part displaced in 12 / 12. An option
+    (off), so 8 viewpoints are run (session 36: shifted 8, axis 8, turned 6, complete 8 of 8)."""
     mesh, asm, solids = lego["mesh"], lego["asm"], lego["solids"]
 
     def passes(d) -> bool:  # its moved part passes into another (the same draws as synth.defects.passes_through, 30x faster)
@@ -244,7 +245,7 @@ def test_a_shifted_or_turned_brick_is_reported_displaced_with_its_move_and_a_com
         return next(d for d in (make(np.random.default_rng(seed + 100 * i)) for i in range(20)) if not passes(d))
 
     n_shift = n_axis = n_turn = n_clean = 0
-    for seed in range(12):
+    for seed in range(8):
         T = _pose(seed, mesh)
         img, box = _photo(lego["asm"], T, seed)
         clean = _report(lego, photo_edges(img, K, box, **PHOTO), T, moves=True)
@@ -260,7 +261,7 @@ def test_a_shifted_or_turned_brick_is_reported_displaced_with_its_move_and_a_com
         img, box = _photo(bad, T, seed)
         p = _report(lego, photo_edges(img, K, box, **PHOTO), T, moves=True)[bad.defect["part"]]
         n_turn += p.verdict in ("displaced", "missing")
-    assert n_shift >= 9 and n_axis >= 9 and n_turn >= 8 and n_clean >= 10, (n_shift, n_axis, n_turn, n_clean)
+    assert n_shift >= 6 and n_axis >= 6 and n_turn >= 5 and n_clean >= 7, (n_shift, n_axis, n_turn, n_clean)
 
 
 def _occluded_photo(asm, mesh, T, seed, k):
