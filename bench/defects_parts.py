@@ -302,12 +302,14 @@ def cross_fit(rows: list[dict], cfg: PixieConfig, max_fa: float = 0.1) -> dict[i
     each half: {half: its parameters}. Judging
     every image with the other half's choice gives a two-fold estimate over all images, twice the report half's
     (48 correct assemblies instead of 24), and shows how much the choice depends on which half it saw."""
-    out = {}
-    for h in (0, 1):
-        sub = [r for r in rows if half_of(r) == h]
-        out[h] = choose_resize(sub, cfg, choose_alt(sub, cfg, choose_moves(sub, cfg, choose(sub, cfg, max_fa=max_fa),
-                                                                          max_fa=max_fa), max_fa=max_fa), max_fa=max_fa)
-    return out
+    return {h: rule([r for r in rows if half_of(r) == h], cfg, max_fa) for h in (0, 1)}
+
+
+def rule(rows: list[dict], cfg: PixieConfig, max_fa: float = 0.1) -> tuple:
+    """The bench's whole rule on ``rows``: :func:`choose`, then :func:`choose_moves`, :func:`choose_alt` and
+    :func:`choose_resize`, each at <= ``max_fa`` false alarms per correct assembly."""
+    return choose_resize(rows, cfg, choose_alt(rows, cfg, choose_moves(rows, cfg, choose(rows, cfg, max_fa=max_fa),
+                                                                       max_fa=max_fa), max_fa=max_fa), max_fa=max_fa)
 
 
 def mean_recall(t: dict) -> float:
@@ -343,6 +345,9 @@ def main(argv=None) -> int:
     ap.add_argument("--parts-dir", default=None, help="the part models under --data: models_parts_solid (every part "
                     "a closed solid, as a multi-body CAD export holds them: moves are checked for collisions; the "
                     "default when the directory exists) or models_parts (the union's triangles by part)")
+    ap.add_argument("--fit-on", type=Path, default=None, metavar="JSON", help="also choose the thresholds by the rule on "
+                    "every row of this earlier --out (another benchmark seed: other assemblies) and judge this run's "
+                    "rows with them: a held-out estimate with no assembly shared")
     ap.add_argument("--max-fa", type=float, default=0.1, help="the rule's false alarms per correct assembly on the "
                     "half it chooses on (0.1: the bar itself; 0.05: a margin for the 24 correct assemblies of a half)")
     args = ap.parse_args(argv)
@@ -407,6 +412,14 @@ def main(argv=None) -> int:
            "estimated_all_configured": table(rows, cfg, conf),
            "gt_pose_all_configured": table(rows, cfg, conf, key="parts_gt"),
            "ablations_report_half": {k: {"params": named(v), "table": table(rep, cfg, v)} for k, v in ablations.items()}}
+    if args.fit_on is not None:
+        other_rows = json.loads(args.fit_on.read_text())["rows"]
+        held = rule(other_rows, cfg, max_fa=mf)
+        res["held_out"] = {"fit_on": str(args.fit_on), "n_fit_images": len(other_rows), "chosen": named(held),
+                           "estimated": table(rows, cfg, held), "gt_pose": table(rows, cfg, held, key="parts_gt")}
+        print(f"\nheld out: chosen on every row of {args.fit_on} ({len(other_rows)} images): {held}; this run's rows "
+              f"judged with it (mean recall {mean_recall(res['held_out']['estimated']):.3f})\n"
+              f"{fmt(res['held_out']['estimated'])}")
     ok = [r for r in rows if "add_mm" in r]
     res["add"] = {"n": len(rows), "add_1cm_before": float(np.mean([r.get("add_mm", 1e9) < 10 for r in rows])),
                   "add_1cm_after_part_realignment": float(np.mean([r.get("add_robust_mm", 1e9) < 10 for r in rows])),

@@ -95,6 +95,10 @@ def test_config_values_are_checked(proc_mesh, build_refs):
         with pytest.raises(ConfigError, match=message):  # refused when set, before any estimator exists
             bad.set(key, value)
     PoseEstimator(refs, cfg)  # the valid config builds
+    # no config: the preset every command runs, not the bare dataclass defaults (which refine by re-rendering)
+    plain = PoseEstimator(refs).cfg
+    assert plain.to_dict() == PixieConfig.from_preset("default").to_dict()
+    assert plain.refine.render_iters == 0 and PixieConfig().refine.render_iters > 0
 
 
 @pytest.mark.slow

@@ -238,7 +238,7 @@ def run_dataset(dataset_root: str | Path, out_dir: str | Path, config: PixieConf
     reference sets are built here first (once, into ``refs_dir``) and Ray workers (:func:`pixie.app.cluster.ray_map`,
     ``threads`` each, default 1) load them from there; the results equal a serial run's at the same ``threads``.
     """
-    cfg = config or PixieConfig()
+    cfg = config if config is not None else PixieConfig.from_preset()  # no config: the shipped 'default' preset
     ds = BopDataset(dataset_root)
     out = output_dir(out_dir)
     remove_stale_temps(out)

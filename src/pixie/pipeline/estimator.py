@@ -1,7 +1,7 @@
 """The pose pipeline in one place: crop → match → lift → PnP → score → view selection → refinement.
 
 >>> refs = load_reference_set("ape.npz")
->>> est = PoseEstimator(refs, PixieConfig())
+>>> est = PoseEstimator(refs)                      # the shipped 'default' preset; or a PixieConfig
 >>> result = est.estimate(image, K, bbox=(x, y, w, h))
 >>> result.T_cam_from_obj, result.score, result.failed
 
@@ -138,7 +138,8 @@ class PoseEstimator:
     Parameters
     ----------
     refs : ReferenceSet
-    config : PixieConfig
+    config : PixieConfig, optional
+        The shipped ``default`` preset (``PixieConfig.from_preset()``) when omitted.
     matcher : pixie.matching.Matcher, optional
         Built from ``config.match`` when omitted. Reference features missing for this matcher are
         extracted once here (slow; store them with ``pixie refs build --matcher``).
@@ -159,7 +160,8 @@ class PoseEstimator:
         self.refs = refs
         # a private copy: the caller's config is never rewritten (e.g. in_plane below), and later edits of it
         # cannot change an estimator that is serving queries
-        self.cfg = copy.deepcopy(config) if config is not None else PixieConfig()
+        # no config: the shipped 'default' preset (what every command runs), not the bare dataclass defaults
+        self.cfg = copy.deepcopy(config) if config is not None else PixieConfig.from_preset()
         m = self.cfg.match
         if self.cfg.pose.threshold_space not in ("image", "crop"):
             raise ConfigError(f"pose.threshold_space must be 'image' or 'crop', got {self.cfg.pose.threshold_space!r}")
