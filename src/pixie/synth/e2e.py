@@ -8,10 +8,12 @@ One home for what the tests and the bench share (no bench script imports the tes
 
 from __future__ import annotations
 
+from dataclasses import replace
+
 import cv2
 import numpy as np
 
-from pixie.config import PixieConfig, RefsConfig
+from pixie.config import PixieConfig
 from pixie.cues.edge_align import align, coarse_kwargs, coarse_levels, photo_edges
 from pixie.geometry.camera import look_at, make_K, make_T, rotation_angle_deg
 from pixie.geometry.mesh import from_arrays
@@ -38,8 +40,7 @@ def e2e_config(matcher_name: str) -> PixieConfig:
     """The modest reference set of the end-to-end test (46 views at 256 px), the shipped ``default`` preset
     otherwise: roll-0 features, the query crop rotated, no render-at-estimate refinement, shape cues, alignment."""
     cfg = PixieConfig.from_preset("default")
-    cfg.refs = RefsConfig(n_fibonacci=40, rotations=8, size=256, encodings=["shade3_edges"],
-                          feature_rolls=cfg.refs.feature_rolls)
+    cfg.refs = replace(cfg.refs, n_fibonacci=40, rotations=8, size=256, encodings=["shade3_edges"])
     cfg.match.matcher = matcher_name
     return cfg
 
