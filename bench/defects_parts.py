@@ -78,8 +78,11 @@ def _kw(cfg: PixieConfig, flag_below: float | None = None, colour_weight: float 
     return support, judge, align
 
 
-def target_estimates(journal: Path, data: Path, cfg: PixieConfig) -> dict[tuple[int, int], dict]:
-    """The cached target-model estimates of ``bench/defects.py`` (same keys: config, model, target, threshold)."""
+def target_estimates(journal: Path, data: Path, cfg: PixieConfig, by_target: bool = False
+                     ) -> dict[tuple[int, int], dict]:
+    """The cached target-model estimates of ``bench/defects.py`` (same keys: config, model, target, threshold).
+    ``by_target``: any record of the target model for the target (scene, image, object), whatever config made it
+    (estimates from an earlier commit whose config keys differ but whose poses are the current default's)."""
     import defects as D  # bench/defects.py
     from pixie.app.runner import make_matcher
 
@@ -92,8 +95,17 @@ def target_estimates(journal: Path, data: Path, cfg: PixieConfig) -> dict[tuple[
         except ValueError:
             continue
         recs[r["key"]] = r
+        if by_target:
+            t = (r["scene_id"], r["im_id"], r["obj_id"])
+            if t in recs and recs[t]["key"] != r["key"]:
+                raise SystemExit(f"{journal}: two estimates of target {t} (target and defective model?); "
+                                 "--by-target needs one per target")
+            recs[t] = r
     out = {}
     for tg in ds.targets():
+        if by_target and (tg.scene_id, tg.im_id, tg.obj_id) in recs:
+            out[(tg.scene_id, tg.im_id)] = recs[(tg.scene_id, tg.im_id, tg.obj_id)]
+            continue
         key = D.run_key(cfg, data / "models" / f"obj_{tg.obj_id:06d}.ply", data, tg, thr)
         if key in recs:
             out[(tg.scene_id, tg.im_id)] = recs[key]
@@ -348,6 +360,8 @@ def main(argv=None) -> int:
     ap.add_argument("--fit-on", type=Path, default=None, metavar="JSON", help="also choose the thresholds by the rule on "
                     "every row of this earlier --out (another benchmark seed: other assemblies) and judge this run's "
                     "rows with them: a held-out estimate with no assembly shared")
+    ap.add_argument("--by-target", action="store_true", help="take the journal's target-model estimate of each target "
+                    "whatever config key it was cached under (estimates of an earlier commit with the same poses)")
     ap.add_argument("--max-fa", type=float, default=0.1, help="the rule's false alarms per correct assembly on the "
                     "half it chooses on (0.1: the bar itself; 0.05: a margin for the 24 correct assemblies of a half)")
     args = ap.parse_args(argv)
@@ -361,7 +375,7 @@ def main(argv=None) -> int:
     else:
         ests: dict = {}
         for j in args.estimates:
-            ests.update(target_estimates(j, args.data, cfg))
+            ests.update(target_estimates(j, args.data, cfg, by_target=args.by_target))
         print(f"{len(ests)} target-model estimates")
         if args.shard:
             k, n = (int(x) for x in args.shard.split("/"))

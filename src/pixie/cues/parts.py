@@ -89,6 +89,10 @@ class PartSupport:
     size_gain: float = 0.0  # the best resize's support gain (part_resizes, move_evidence): a part of the wrong size
     size: str = ""  # that resize, in words ('1.5x as long along z, low end kept'); '' when none was tried
     size_support: float = 0.0  # the support of the resized part's own contour pixels at that resize
+    unexplained: float = 0.0  # photo edge pixels no model contour explains, per pixel of its inner region
+    n_inner: int = 0  # the pixels of that inner region (its visible pixels away from every model contour)
+    unexplained_ring: float = 0.0  # ... per pixel of the other parts' region around it (within ring_px)
+    n_ring: int = 0
     verdict: str = ""
     judged_at: str = ""  # 'runner-up': hidden at the chosen pose, judged at the runner-up pose (config.parts.alt_gap)
     uv: np.ndarray = field(default_factory=lambda: np.zeros((0, 2)), repr=False)  # its contour points, photo px
@@ -105,7 +109,9 @@ class PartSupport:
                 "exclusive_shifted_support": round(self.exclusive_shifted, 4),
                 "move_gain": round(self.move_gain, 4), "move": self.move, "move_support": round(self.move_support, 4),
                 "move_explained_by": self.move_explained_by, "size_gain": round(self.size_gain, 4), "size": self.size,
-                "size_support": round(self.size_support, 4), "judged_at": self.judged_at}
+                "size_support": round(self.size_support, 4), "unexplained": round(self.unexplained, 5),
+                "n_inner": self.n_inner, "unexplained_ring": round(self.unexplained_ring, 5), "n_ring": self.n_ring,
+                "judged_at": self.judged_at}
 
     @classmethod
     def from_dict(cls, d: dict) -> "PartSupport":
@@ -117,7 +123,10 @@ class PartSupport:
                    n_revealed=d.get("n_revealed", 0), exclusive_shifted=d.get("exclusive_shifted_support", 0.0),
                    move_gain=d.get("move_gain", 0.0), move=d.get("move", ""), move_support=d.get("move_support", 0.0),
                    move_explained_by=d.get("move_explained_by", -1), size_gain=d.get("size_gain", 0.0),
-                   size=d.get("size", ""), size_support=d.get("size_support", 0.0), judged_at=d.get("judged_at", ""))
+                   size=d.get("size", ""), size_support=d.get("size_support", 0.0),
+                   unexplained=d.get("unexplained", 0.0), n_inner=d.get("n_inner", 0),
+                   unexplained_ring=d.get("unexplained_ring", 0.0), n_ring=d.get("n_ring", 0),
+                   judged_at=d.get("judged_at", ""))
 
 
 def report_kwargs(pc: PartsConfig) -> tuple[dict, dict]:
@@ -216,6 +225,36 @@ def coarse_pixels(xy: np.ndarray, sel: np.ndarray, shape: tuple[int, int], detai
     return sel & big[lab[y, x]]
 
 
+def unexplained_edges(pe: PhotoEdges, xy: np.ndarray, ori: np.ndarray, radius: int = 3) -> np.ndarray:
+    """(size, size) bool: the crop pixels holding a photo edge that no model contour pixel (``xy``, ``ori``: every
+    kind, creases included) of a like orientation (±1 of 8 bins) explains within ``radius`` px. On a part that is
+    where the model has it, few remain (highlights, shadows, detail); a part shifted, turned or of another size puts
+    its own outline where the model has none."""
+    out = np.zeros((pe.size, pe.size), bool)
+    if not len(pe.edge_xy):
+        return out
+    ang = np.mod(np.arctan2(pe.edge_dir[:, 1], pe.edge_dir[:, 0]), np.pi)
+    lone = ~explained(pe.edge_xy, ang, near_maps(xy, ori, (pe.size, pe.size), radius=radius))
+    x = np.clip(np.rint(pe.edge_xy[lone, 0]).astype(int), 0, pe.size - 1)
+    y = np.clip(np.rint(pe.edge_xy[lone, 1]).astype(int), 0, pe.size - 1)
+    out[y, x] = True
+    return out
+
+
+def part_regions(part_map: np.ndarray, k: int, allowed: np.ndarray, contour: np.ndarray, ring_px: int
+                 ) -> tuple[np.ndarray, np.ndarray]:
+    """Part ``k``'s inner region (its visible pixels, in ``allowed``, not within the model's contour band
+    ``contour``) and its ring (the other parts' visible pixels within ``ring_px`` of it, also away from ``contour``),
+    both (H, W) bool: where :func:`unexplained_edges` are counted for the part."""
+    own = (part_map == k) & allowed
+    inner = own & ~contour
+    if ring_px <= 0 or not own.any():
+        return inner, np.zeros_like(own)
+    k_ = 2 * int(ring_px) + 1
+    near = cv2.dilate(own.astype(np.uint8), cv2.getStructuringElement(cv2.MORPH_ELLIPSE, (k_, k_))) > 0
+    return inner, near & ~own & (part_map >= 0) & allowed & ~contour
+
+
 def part_support(renderer: Renderer, face_parts: np.ndarray, part_names, pe: PhotoEdges, T: np.ndarray, *,
                  fit_px: float = 1.5, max_bin_gap: int = 1, shift_frac: float = 0.12, shift_step: float = 2.0,
                  renderers: list[Renderer] | None = None, min_points: int = 12, kinds=(0, 1, 2),
@@ -223,7 +262,8 @@ def part_support(renderer: Renderer, face_parts: np.ndarray, part_names, pe: Pho
                  complements: list[tuple[Renderer, np.ndarray]] | None = None,
                  moves: bool = False, min_visible: float = 0.2, move_below: float = 0.9, move_changed: float = 0.3,
                  move_px: float = 4.0, move_collide: bool = True, solids: PartSolids | None = None,
-                 detail_px: float = 0.0, contrast_px: int = 3, resizes: bool = False) -> list[PartSupport]:
+                 detail_px: float = 0.0, contrast_px: int = 3, resizes: bool = False,
+                 ring_frac: float = 0.06) -> list[PartSupport]:
     """Every part's support at pose ``T`` (verdicts not yet set: :func:`judge_parts`).
 
     Parameters
@@ -256,12 +296,19 @@ def part_support(renderer: Renderer, face_parts: np.ndarray, part_names, pe: Pho
     resizes : also test the part longer or shorter along the model's axes (:func:`part_resizes`: ``size_gain`` and
         ``size``), for the parts the 3D moves would test (``min_visible``, ``move_below``, ``move_changed``,
         ``move_px``, ``move_collide`` apply): a part of the wrong size
+    ring_frac : ``unexplained_ring`` counts the other parts' pixels within this share of the box's longer side
     """
     face_parts = np.asarray(face_parts)
     n_parts = len(part_names)
     step_mm = step_frac * renderer.mesh.diameter
     r = renderer.render(T, pe.K, pe.size, pe.size)
     xy, ori, part, part_map, kind = part_contours(r, face_parts, step_mm=step_mm)
+    lone = unexplained_edges(pe, xy, ori, radius=contrast_px)  # every contour kind explains photo edges
+    band = np.zeros(part_map.shape, np.uint8)
+    if len(xy):
+        band[np.clip(np.rint(xy[:, 1]).astype(int), 0, pe.size - 1),
+             np.clip(np.rint(xy[:, 0]).astype(int), 0, pe.size - 1)] = 1
+    band = cv2.dilate(band, np.ones((2 * contrast_px + 1,) * 2, np.uint8)) > 0
     keep = np.isin(kind, np.asarray(kinds))
     xy, ori, part = xy[keep], ori[keep], part[keep]
     d, inside = edge_distances(pe, xy, ori, max_bin_gap, fit_px) if len(xy) else (np.zeros(0), np.zeros(0, bool))
@@ -275,6 +322,7 @@ def part_support(renderer: Renderer, face_parts: np.ndarray, part_names, pe: Pho
     box_side = float(max(pe.box[2] - pe.box[0], pe.box[3] - pe.box[1]))
     shifts = _shift_grid(max(shift_frac * box_side, 2.0), shift_step)
     allowed = pe.allowed
+    ring_px = int(round(ring_frac * box_side))
     out = []
     for k in range(n_parts):
         own = (part == k) & inside
@@ -313,10 +361,14 @@ def part_support(renderer: Renderer, face_parts: np.ndarray, part_names, pe: Pho
                 dw, win = edge_distances(pe, wxy[new_px], wori[new_px], max_bin_gap, fit_px)
                 n_rev = int(win.sum())
                 rev = float((dw[win] <= fit_px).mean()) if n_rev else 0.0
+        inner_k, ring_k = part_regions(part_map, k, allowed, band, ring_px)
+        n_in, n_ring = int(inner_k.sum()), int(ring_k.sum())
         out.append(PartSupport(index=k, name=str(part_names[k]), support=support, relative=0.0, shifted=best,
                                shift_px=best_shift, visible=visible, n_points=n, colour=colour,
                                exclusive=excl, n_exclusive=n_excl, revealed=rev, n_revealed=n_rev,
                                exclusive_shifted=excl_shifted,
+                               unexplained=float(lone[inner_k].mean()) if n_in else 0.0, n_inner=n_in,
+                               unexplained_ring=float(lone[ring_k].mean()) if n_ring else 0.0, n_ring=n_ring,
                                uv=pe.to_photo(xy[own]) if n else np.zeros((0, 2)), hit=hit[own]))
     judged = [p.support for p in out if p.n_points >= min_points]
     med = float(np.median(judged)) if judged else 0.0
