@@ -46,7 +46,7 @@ sys.path.insert(0, str(REPO / "bench"))
 
 from pixie.config import PixieConfig  # noqa: E402
 from pixie.cues.edge_align import align_kwargs, edge_fit, photo_edges, photo_edges_kwargs  # noqa: E402
-from pixie.cues.parts import (PartSupport, complement_renderers, hidden_from_runner_up, is_flip_runner_up,  # noqa: E402
+from pixie.cues.parts import (PartSupport, combine_views, complement_renderers, hidden_from_runner_up, is_flip_runner_up,  # noqa: E402
                               judge_parts, part_renderers, part_support, report_kwargs, robust_part_fit)
 from pixie.eval import pose_error as M  # noqa: E402
 from pixie.eval.datasets import BopDataset  # noqa: E402
@@ -233,6 +233,50 @@ def table(rows: list[dict], cfg: PixieConfig, params, key: str = "parts") -> dic
                           not_visible=float(np.mean([x == "not visible" for x in ver])),
                           other_parts_flagged_per_image=float(np.mean(other)))
     return out
+
+
+def assembly_table(rows: list[dict], cfg: PixieConfig, params, key: str = "parts") -> dict:
+    """:func:`table` per assembly instead of per photo: the photos of one scene (one assembly in one colour, seen
+    from several viewpoints) judged together (:func:`pixie.cues.parts.combine_views` over their part records judged
+    with ``params``). Recall of the defective part per defect type over the scenes; false alarms = flagged parts per
+    correct scene."""
+    of = params if callable(params) else (lambda r: params)
+    scenes: dict[int, list[dict]] = {}
+    for r in rows:
+        if key in r:
+            scenes.setdefault(r["scene_id"], []).append(r)
+    by: dict[str, list[tuple[dict, list]]] = {}
+    for sid, rs in sorted(scenes.items()):
+        prm = of(rs[0])
+        _, judge, _ = _kw(cfg, *prm[:5], resize_gain=prm[6] if len(prm) > 6 else float("inf"))
+        combined = combine_views([_judged(r[key], cfg, prm) for r in rs], **judge)
+        by.setdefault(rs[0]["defect"] or "none (correct assembly)", []).append((rs[0], combined))
+    out: dict[str, dict] = {}
+    for d, items in sorted(by.items()):
+        vs = [[p.verdict for p in c] for _, c in items]
+        if d == "none (correct assembly)":
+            fa = [sum(x in FLAG for x in v) for v in vs]
+            out[d] = dict(n=len(items),
+                          false_alarms_per_assembly=float(np.mean(fa)),
+                          assemblies_with_a_false_alarm=float(np.mean([f > 0 for f in fa])))
+        elif d == "extra":
+            out[d] = dict(n=len(items), assemblies_flagged=float(np.mean([any(x in FLAG for x in v) for v in vs])))
+        else:
+            ver = [v[r["defect_part"]] if r["defect_part"] < len(v) else "not visible" for (r, _), v in zip(items, vs)]
+            out[d] = dict(n=len(items), recall=float(np.mean([x in FLAG for x in ver])),
+                          not_visible=float(np.mean([x == "not visible" for x in ver])))
+    return out
+
+
+def fmt_assembly(t: dict) -> str:
+    """Markdown of an :func:`assembly_table`."""
+    lines = ["| defect | assemblies | recall of the defective part | not visible in any photo | false alarms / correct "
+             "assembly | assemblies flagged |", "|---|---|---|---|---|---|"]
+    f = lambda x: "-" if x is None else f"{x:.2f}"  # noqa: E731
+    for d, r in t.items():
+        lines.append(f"| {d} | {r['n']} | {f(r.get('recall'))} | {f(r.get('not_visible'))} | "
+                     f"{f(r.get('false_alarms_per_assembly'))} | {f(r.get('assemblies_flagged'))} |")
+    return "\n".join(lines)
 
 
 def choose_moves(rows: list[dict], cfg: PixieConfig, params: tuple, grid=MOVE_GRID, max_fa: float = 0.1) -> tuple:
@@ -426,11 +470,14 @@ def main(argv=None) -> int:
            "estimated_all_configured": table(rows, cfg, conf),
            "gt_pose_all_configured": table(rows, cfg, conf, key="parts_gt"),
            "ablations_report_half": {k: {"params": named(v), "table": table(rep, cfg, v)} for k, v in ablations.items()}}
+    res["by_assembly"] = {"configured": assembly_table(rows, cfg, conf),
+                          "configured_gt_pose": assembly_table(rows, cfg, conf, key="parts_gt")}
     if args.fit_on is not None:
         other_rows = json.loads(args.fit_on.read_text())["rows"]
         held = rule(other_rows, cfg, max_fa=mf)
         res["held_out"] = {"fit_on": str(args.fit_on), "n_fit_images": len(other_rows), "chosen": named(held),
-                           "estimated": table(rows, cfg, held), "gt_pose": table(rows, cfg, held, key="parts_gt")}
+                           "estimated": table(rows, cfg, held), "gt_pose": table(rows, cfg, held, key="parts_gt"),
+                           "by_assembly": assembly_table(rows, cfg, held)}
         print(f"\nheld out: chosen on every row of {args.fit_on} ({len(other_rows)} images): {held}; this run's rows "
               f"judged with it (mean recall {mean_recall(res['held_out']['estimated']):.3f})\n"
               f"{fmt(res['held_out']['estimated'])}")
@@ -450,6 +497,8 @@ def main(argv=None) -> int:
         print(f"\n{k}\n{fmt(res[k])}")
     for k, v in res["ablations_report_half"].items():
         print(f"\nablation, report half: {k}, chosen on the fitting half by the same rule: {v['params']}\n{fmt(v['table'])}")
+    for k, v in res["by_assembly"].items():
+        print(f"\nper assembly (its photos judged together, pixie.cues.parts.combine_views), {k}\n{fmt_assembly(v)}")
     print("\n", json.dumps(res["add"]))
     args.out.write_text(json.dumps({**res, "rows": rows}, indent=1, default=float))
     print(f"wrote {args.out}")

@@ -87,6 +87,26 @@ def test_manifest_refuses_rows_without_box_and_missing_files(batch_inputs, tmp_p
     assert len(folder_items(root / "photos", "600,600,320,240", masks=root / "masks")) == 3
 
 
+def test_photos_of_one_assembly_are_named_in_the_manifest_or_by_the_folder(batch_inputs, tmp_path, capsys):
+    """An 'assembly' column groups a manifest's photos (judged together by pixie inspect --batch); a folder batch
+    with --one-assembly is one assembly named after the folder; without either no photo has one."""
+    from pixie.app.cli import main
+
+    root, *_ = batch_inputs
+    m = tmp_path / "m.csv"
+    m.write_text("image,K,bbox,assembly\n" + "".join(f"{root}/photos/p{n}.png,\"600,600,320,240\",\"1,2,30,40\",{a}\n"
+                                                        for n, a in enumerate(["unit 7", "", "unit 7"])))
+    assert [it.assembly for it in read_manifest(m)] == ["unit 7", None, "unit 7"]
+    assert [it.assembly for it in read_manifest(root / "manifest.csv")] == [None] * 3
+    one = folder_items(root / "photos", "600,600,320,240", masks=root / "masks", one_assembly=True)
+    assert {it.assembly for it in one} == {"photos"}
+    assert {it.assembly for it in folder_items(root / "photos", "600,600,320,240", masks=root / "masks")} == {None}
+    assert main(["inspect", "--batch", str(m), "--refs", "x.npz", "-o", str(tmp_path / "o"), "--one-assembly"]) == 2
+    assert "in a manifest, name each photo's assembly in an 'assembly' column" in capsys.readouterr().err
+    assert main(["estimate", "--image", str(root / "photos" / "p0.png"), "--refs", "x.npz", "--one-assembly"]) == 2
+    assert "one --image has one view" in capsys.readouterr().err
+
+
 def _poses(out: Path) -> list:
     return [json.loads(line)["result"]["T_cam_from_obj"] for line in (out / "results.jsonl").read_text().splitlines()]
 

@@ -592,3 +592,95 @@ def test_the_console_report_and_the_overlay_name_a_wrong_part_and_its_size():
     assert first.split()[:2] == ["bolt0", "wrong"] and "2x as long along z, low end kept" in first and "+0.43" in first
     img = draw_parts(np.zeros((100, 120, 3), np.uint8), ps)
     assert tuple(img[40, 30]) == VERDICT_COLORS["wrong"] and tuple(img[60, 50]) == VERDICT_COLORS["present"]
+
+
+# ------------------------------------------------------------------------------------------ several photos of one assembly
+
+
+def _rec(k, exclusive, revealed=0.0, visible=1.0, colour=1.0):
+    """A part record with its exclusive contour supported ``exclusive`` (120 pixels) and the contour its absence
+    would reveal supported ``revealed`` (40 pixels)."""
+    from pixie.cues.parts import PartSupport
+
+    return PartSupport(index=k, name=f"p{k}", support=exclusive, relative=0.0, shifted=exclusive, shift_px=0.0,
+                       visible=visible, n_points=150, colour=colour, exclusive=exclusive, n_exclusive=120,
+                       revealed=revealed, n_revealed=40, exclusive_shifted=exclusive)
+
+
+def test_combine_views_averages_each_parts_score_over_the_photos_that_see_it():
+    """Each photo judged alone (judge_parts, the shipped thresholds) and the three judged together: a part flagged in
+    one photo only is present over the three (one photo's noise), a part unsupported in every photo is flagged with
+    the kind most photos give, a part visible in no photo is not visible, and one judged in a single photo takes
+    that photo's evidence alone."""
+    from pixie.cues.parts import combine_views, part_scores
+
+    def photo(noisy, defect, hidden_in_this):
+        return [_rec(0, 0.8), _rec(1, 0.75), _rec(2, noisy, revealed=0.3), _rec(3, defect, revealed=0.5),
+                _rec(4, 0.8, visible=0.05), _rec(5, 0.05, revealed=0.6, visible=0.05 if hidden_in_this else 0.9),
+                _rec(6, 0.85), _rec(7, 0.7)]
+
+    reports = [judge_parts(photo(0.05, 0.05, False), **JUDGE), judge_parts(photo(0.8, 0.1, True), **JUDGE),
+               judge_parts(photo(0.7, 0.02, True), **JUDGE)]
+    # one photo's verdicts agree with its scores: flagged exactly where the score is below flag_below
+    for r in reports:
+        s = part_scores(r, **JUDGE)
+        assert [p.verdict in ("missing", "displaced", "wrong") for p in r] == [x is not None and x < JUDGE["flag_below"]
+                                                                             for x in s]
+        assert [x is None for x in s] == [p.verdict == "not visible" for p in r]
+    assert [p.verdict for p in reports[0]] == ["present", "present", "missing", "missing", "not visible", "missing",
+                                               "present", "present"]
+    reports[1][3].verdict = reports[2][3].verdict = "displaced"  # the kind two of its three photos give
+    combined = combine_views(reports, **JUDGE)
+    assert [p.verdict for p in combined] == ["present", "present", "present", "displaced", "not visible", "missing",
+                                             "present", "present"]
+    assert [p.n_views for p in combined] == [3, 3, 3, 3, 0, 1, 3, 3]
+    assert combined[2].view_verdicts == ["missing", "present", "present"] and np.isnan(combined[4].score)
+    assert combined[3].score < JUDGE["flag_below"] <= combined[2].score
+    assert combined[3].as_dict()["score"] == round(combined[3].score, 4) and combined[4].as_dict()["score"] is None
+    with pytest.raises(ValueError, match="same parts"):
+        combine_views([reports[0], reports[1][:4]], **JUDGE)
+    assert combine_views([], **JUDGE) == []
+
+
+def test_a_removed_part_is_reported_missing_over_three_photos_and_the_complete_assembly_has_none(lego):
+    """The part report of three photos of one assembly (three viewpoints, the true pose) judged together: the
+    removed brick is missing, no other part is flagged, and the complete assembly flags none."""
+    from pixie.cues.parts import combine_views
+
+    mesh = lego["mesh"]
+    for asm, removed in ((lego["bad"], lego["removed"]), (lego["asm"], None)):
+        reports = []
+        for seed in (3, 4, 5):
+            T = _pose(seed, mesh)
+            img, box = _photo(asm, T, seed)
+            reports.append(_report(lego, photo_edges(img, K, box, **PHOTO), T))
+        flagged = [p.index for p in combine_views(reports, **JUDGE) if p.verdict in ("missing", "displaced", "wrong")]
+        assert flagged == ([] if removed is None else [removed])
+
+
+def test_a_batch_judges_the_photos_of_each_assembly_together():
+    """pixie.app.batch.assembly_reports on batch records: photos grouped by their 'assembly' (and object), a failed
+    estimate left out, photos without an assembly left alone, assemblies with suspect parts first; the page lists
+    them above the photos."""
+    from pixie.app.batch import _html, assembly_reports
+
+    def rec(row, name, parts, failed=False, assembly=None):
+        d = [p.as_dict() for p in judge_parts(parts, **JUDGE)]
+        return {"row": row, "name": name, "assembly": assembly, "obj_id": 1, "refs": "r.npz", "time_s": 1.0,
+                "result": {"failed": failed, "parts": d, "score": 1.0, "confidence": 0.5, "T_cam_from_obj": None}}
+
+    good = [_rec(k, 0.8 - 0.02 * k) for k in range(5)]
+    bad = [_rec(k, 0.8 - 0.02 * k) if k != 3 else _rec(3, 0.05, revealed=0.5) for k in range(5)]
+    records = [rec(0, "a0.png", good, assembly="A"), rec(1, "b0.png", bad, assembly="B"),
+               rec(2, "b1.png", bad, assembly="B"), rec(3, "a1.png", bad, assembly="A", failed=True),
+               rec(4, "a2.png", good, assembly="A"), rec(5, "loose.png", bad)]
+    reps = assembly_reports(records, PixieConfig())
+    assert [a["assembly"] for a in reps] == ["B", "A"]  # suspect first
+    b, a = reps
+    assert b["photos"] == ["b0.png", "b1.png"] and b["suspect"] == ["p3"] and b["rows"] == [1, 2]
+    assert a["n_photos"] == 2 and a["photos"] == ["a0.png", "a2.png"] and a["suspect"] == []  # the failed one left out
+    assert {p["name"]: p["verdict"] for p in b["parts"]}["p3"] == "missing" and b["parts"][3]["n_views"] == 2
+    page = _html(records, 6, PixieConfig(), reps)
+    assert page.index("Assemblies (their photos judged together)") < page.index("<h2>Photos</h2>")
+    assert "p3 (missing, mean score" in page
+    assert assembly_reports([records[5]], PixieConfig()) == []  # no assembly named: no combined report

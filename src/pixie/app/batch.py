@@ -13,6 +13,11 @@ an image (white = object); every row needs a bbox or a mask. Optional columns ``
 error against it to the result and the page. Paths are relative to the manifest.
 JSON manifests are a list of objects with the same keys (``K`` and ``bbox`` may be lists).
 
+**One assembly in several photos** (``pixie inspect --batch``): rows with the same ``assembly`` column (any name)
+show one physical assembly from different viewpoints; its part report is judged over all of them
+(:func:`pixie.cues.parts.combine_views`: each part's score averaged over the photos that see it), which tells a
+defect, present in every photo, from one photo's noise. A folder batch with ``--one-assembly`` is one assembly.
+
 **Several objects per photo:** a row per (photo, object, box or mask), with the object named per row by a ``refs``
 (a reference set) or ``mesh`` (a CAD file: its set is built once into the user cache, as for ``estimate --mesh``)
 column; rows without one use
@@ -24,6 +29,8 @@ One estimator per reference set serves its images (loaded or built once). Output
   best guess with score 0, rows without any pose are left out;
 * ``results.jsonl`` -- one full result per image, in input order (inputs, hashes, config, pose, hypotheses);
 * ``index.html`` + ``overlays/*.png`` -- one overlay per image;
+* ``assemblies.json`` -- with ``assembly`` groups of a mesh with parts: per assembly its photos and each part's
+  verdict over them (the page lists assemblies with suspect parts first, above the photos);
 * ``journal.jsonl`` -- the cache that makes runs resumable: a record is reused when the image's bytes, its
   K, box and mask, the configuration and the reference set are all the same (a changed config re-runs).
 """
@@ -48,6 +55,7 @@ from pixie.app.notes import Notes, annotate, collect_warnings
 from pixie.app.runner import Journal
 from pixie.app.track import read_pose_file
 from pixie.config import PixieConfig
+from pixie.cues.parts import PartSupport, combine_views, report_kwargs
 from pixie.errors import ConfigError, ImageError, PixieError, UsageError
 from pixie.pipeline.estimator import PoseEstimator
 from pixie.eval.datasets import PoseEstimate, write_results_csv
@@ -63,7 +71,7 @@ from pixie.weights import sha256_file
 __all__ = ["BatchItem", "read_manifest", "folder_items", "run_batch", "IMAGE_SUFFIXES", "BATCH_OUTPUTS"]
 
 IMAGE_SUFFIXES = (".png", ".jpg", ".jpeg", ".bmp", ".tif", ".tiff")
-BATCH_OUTPUTS = ("results.csv", "results.jsonl", "index.html", "journal.jsonl")  # written into the output folder
+BATCH_OUTPUTS = ("results.csv", "results.jsonl", "index.html", "journal.jsonl", "assemblies.json")  # into the output folder
 
 
 @dataclass
@@ -80,6 +88,7 @@ class BatchItem:
     refs: Path | None = None  # this row's reference set (several objects per photo); None: the batch's
     gt_pose: Path | None = None  # a pose file with this row's true pose: its errors go into the result and the page
     mesh: Path | None = None  # or its CAD file (the CLI builds the set once and fills ``refs``)
+    assembly: str | None = None  # photos with the same name show one physical assembly (judged together)
 
     @property
     def name(self) -> str:
@@ -145,16 +154,19 @@ def read_manifest(path: str | Path) -> list[BatchItem]:
             except (TypeError, ValueError) as exc:
                 raise ConfigError(f"{where}: {key} must be an integer, got {row[key]!r}") from exc
         box = parse_box(row["bbox"], "bbox", where, ConfigError) if has_box else None
-        items.append(BatchItem(image, parse_K(row["k"], "K", where, ConfigError), box, mask, **ids, **obj, **gt))
+        asm = str(row["assembly"]).strip() if row.get("assembly") not in (None, "") else None
+        items.append(BatchItem(image, parse_K(row["k"], "K", where, ConfigError), box, mask, **ids, **obj, **gt,
+                               assembly=asm))
     if missing:
         raise ImageError(f"{len(missing)} file(s) of the manifest do not exist:\n  " + "\n  ".join(missing[:20]))
     return items
 
 
 def folder_items(folder: str | Path, K: str | np.ndarray | None, bbox: str | None = None,
-                 masks: str | Path | None = None) -> list[BatchItem]:
+                 masks: str | Path | None = None, one_assembly: bool = False) -> list[BatchItem]:
     """Every image of ``folder`` (sorted by name) with one ``K``, and one ``bbox`` for all or a mask per image
-    (``masks/<same name>`` with any image suffix)."""
+    (``masks/<same name>`` with any image suffix). ``one_assembly``: the images show one physical assembly (its
+    part report judged over all of them), named after the folder."""
     folder = Path(folder)
     images = sorted(p for p in folder.iterdir() if p.is_file() and p.suffix.lower() in IMAGE_SUFFIXES)
     if not images:
@@ -173,7 +185,8 @@ def folder_items(folder: str | Path, K: str | np.ndarray | None, bbox: str | Non
             mask = next((c for c in cands if c.is_file()), None)
             if mask is None:
                 raise ImageError(f"no mask for {img.name} in {masks} (looked for {img.stem}.png etc.)")
-        items.append(BatchItem(img, Km, None if bbox is None else parse_box(bbox, "--bbox", error=ConfigError), mask, 0, n, 1))
+        items.append(BatchItem(img, Km, None if bbox is None else parse_box(bbox, "--bbox", error=ConfigError), mask, 0, n, 1,
+                               assembly=folder.resolve().name if one_assembly else None))
     return items
 
 
@@ -265,6 +278,7 @@ class BatchSummary:
     results_jsonl: Path
     html: Path
     workers: int = 1
+    assemblies: list[dict] | None = None  # assembly_reports of the batch (photos judged together), when any
 
 
 def run_batch(items: list[BatchItem], out_dir: str | Path, config: PixieConfig, refs_path: str | Path | None,
@@ -307,7 +321,7 @@ def run_batch(items: list[BatchItem], out_dir: str | Path, config: PixieConfig, 
                      "bbox": None if it.bbox is None else it.bbox.tolist(),
                      "mask": None if it.mask is None else str(it.mask),
                      "scene_id": it.scene_id, "im_id": it.im_id, "obj_id": it.obj_id,
-                     "gt_pose": None if it.gt_pose is None else str(it.gt_pose)})
+                     "gt_pose": None if it.gt_pose is None else str(it.gt_pose), "assembly": it.assembly})
     journal = Journal(out / "journal.jsonl", key=lambda rec: rec["key"])  # the reader pixie run uses too
     done = journal.records
     todo = [j for j in jobs if j["key"] not in done]
@@ -359,10 +373,46 @@ def run_batch(items: list[BatchItem], out_dir: str | Path, config: PixieConfig, 
         _photo_overlays(records, out)
     write_results_csv(out / "results.csv", ests)  # atomic (pixie.paths.write_atomic)
     write_atomic(out / "results.jsonl", "".join(json.dumps(r) + "\n" for r in records))
-    write_atomic(out / "index.html", _html(records, len(jobs), config))
+    # the group of each record as given now (a cached record keeps the assembly it was run under otherwise)
+    group_of = {j["key"]: j["assembly"] for j in jobs}
+    assemblies = assembly_reports([{**r, "assembly": group_of.get(r["key"])} for r in records], config)
+    if assemblies:
+        write_atomic(out / "assemblies.json", json.dumps({"note": ASSEMBLY_NOTE, "assemblies": assemblies}, indent=1))
+    elif (out / "assemblies.json").is_file():
+        (out / "assemblies.json").unlink()  # a previous run's groups no longer apply
+    write_atomic(out / "index.html", _html(records, len(jobs), config, assemblies))
     n_failed = sum(1 for r in records if r["result"].get("failed"))
     return BatchSummary(len(jobs), n_cached, len(todo), n_failed, time.perf_counter() - t_start,
-                        out / "results.csv", out / "results.jsonl", out / "index.html", n_workers)
+                        out / "results.csv", out / "results.jsonl", out / "index.html", n_workers, assemblies)
+
+
+ASSEMBLY_NOTE = ("photos with the same 'assembly' judged together: each part's score (pixie.cues.parts.part_score, "
+                 "as in one photo's report) averaged over the photos that see it (visible enough to judge), flagged "
+                 "below config.parts.flag_below; n_views = those photos, view_verdicts = its verdict in each photo")
+
+
+def assembly_reports(records: list[dict], config: PixieConfig) -> list[dict]:
+    """One combined part report per assembly: the records (batch results) with the same ``assembly`` and object
+    whose estimate has a part report, judged together (:func:`pixie.cues.parts.combine_views` with
+    ``config.parts``' thresholds); failed estimates are left out (their pose, and so their evidence, is not
+    trusted). Assemblies with suspect parts come first."""
+    groups: dict[tuple, list[dict]] = {}
+    for r in records:
+        res = r.get("result") or {}
+        if r.get("assembly") and res.get("parts") and not res.get("failed"):
+            groups.setdefault((r["assembly"], r.get("obj_id", 1), r.get("refs")), []).append(r)
+    judge = report_kwargs(config.parts)[1]
+    out = []
+    for (name, obj_id, _), rs in groups.items():
+        reports = [[PartSupport.from_dict(p) for p in r["result"]["parts"]] for r in rs]
+        if len({len(x) for x in reports}) != 1:
+            continue  # not the same parts: not one model (a changed reference set)
+        parts = combine_views(reports, **judge)
+        out.append({"assembly": name, "obj_id": obj_id, "n_photos": len(rs), "photos": [r["name"] for r in rs],
+                    "rows": [r["row"] for r in rs],
+                    "suspect": [p.name for p in parts if p.verdict in SUSPECT_VERDICTS],
+                    "parts": [p.as_dict() for p in parts]})
+    return sorted(out, key=lambda a: (-len(a["suspect"]), str(a["assembly"])))
 
 
 def _photo_overlays(records: list[dict], out: Path) -> None:
@@ -405,7 +455,28 @@ def suspect_first(records: list[dict]) -> list[dict]:
     return sorted(records, key=lambda r: (-n_suspect(r), r["row"]))
 
 
-def _html(records: list[dict], n_total: int, config: PixieConfig) -> str:
+def _assembly_html(assemblies: list[dict]) -> str:
+    """The page's table of assemblies judged over several photos (suspect first)."""
+    if not assemblies:
+        return ""
+    rows = []
+    for a in assemblies:
+        sus = [p for p in a["parts"] if p["verdict"] in SUSPECT_VERDICTS]
+        what = ("<b>suspect parts:</b> " + ", ".join(
+            f"{html.escape(p['name'])} ({p['verdict']}, mean score {p['score']:.2f} over {p['n_views']} photos)"
+            for p in sus)) if sus else "no suspect part"
+        hidden = [p["name"] for p in a["parts"] if p["verdict"] == "not visible"]
+        if hidden:
+            what += "<br>not visible in any photo: " + ", ".join(html.escape(h) for h in hidden)
+        rows.append(f"<tr><td>{html.escape(str(a['assembly']))}</td><td>{a['n_photos']}</td><td>{what}</td>"
+                    f"<td>{html.escape(', '.join(a['photos']))}</td></tr>")
+    return ("<h2>Assemblies (their photos judged together)</h2><p>Each part's score is averaged over the photos that "
+            "see it; a part is suspect when the mean is below the threshold of one photo's report.</p>"
+            "<table><tr><th>assembly</th><th>photos</th><th>part report</th><th>which photos</th></tr>"
+            + "\n".join(rows) + "</table><h2>Photos</h2>")
+
+
+def _html(records: list[dict], n_total: int, config: PixieConfig, assemblies: list[dict] | None = None) -> str:
     rows = []
     with_parts = any(r["result"].get("parts") for r in records)
     if with_parts:
@@ -433,6 +504,7 @@ def _html(records: list[dict], n_total: int, config: PixieConfig) -> str:
     return f"""<!doctype html><html><head><meta charset="utf-8"><title>pixie batch</title>
 <style>body{{font-family:sans-serif}} td{{padding:4px;vertical-align:top;border-bottom:1px solid #ddd}}</style></head>
 <body><h1>pixie batch: {len(records)} of {n_total} images done</h1>
+{_assembly_html(assemblies or [])}
 {"<p>Part report: photos with suspect (missing, displaced or wrong) parts come first; on the overlays parts are green (present), red (missing), orange (displaced), magenta (wrong), grey (not visible).</p>" if with_parts else ""}
 <p>preset {html.escape(str(config.preset))}, config digest {config.digest()}. Overlay: model contour at the estimate (red),
 object axes at its origin (x red, y green, z blue), the given box (yellow). Confidence = best score / (best + second

@@ -36,7 +36,7 @@ from pixie.eval.detections import load_detections
 from pixie.matching import available_matchers, backend_weights
 from pixie.threads import default_threads, set_threads
 from pixie.paths import not_an_input, output_dir, output_file, write_atomic
-from pixie.pose.results import no_box_message
+from pixie.pose.results import SUSPECT_VERDICTS, no_box_message
 from pixie.pipeline.query import bbox_from_mask, check_bbox, check_query_mask, load_image
 from pixie.references.set import build_reference_set
 from pixie.references.store import ensure_templates, check_output_path, load_reference_set, save_reference_set
@@ -195,6 +195,8 @@ def cmd_estimate(args: argparse.Namespace) -> int:
         raise PixieError("give --image PHOTO (one photo) or --batch FOLDER|MANIFEST (many)")
     if args.ray:
         raise PixieError("--ray distributes --batch runs; one --image runs here")
+    if args.one_assembly:
+        raise PixieError("--one-assembly judges the photos of a --batch FOLDER together; one --image has one view")
     with collect_warnings(echo=say_warning) as notes:  # each warning printed once and kept for the result JSON
         return _estimate_one(args, notes)
 
@@ -366,10 +368,13 @@ def _estimate_batch(args: argparse.Namespace) -> int:
     cfg = _config(args)
     src = Path(args.batch)
     if src.is_dir():
-        items = folder_items(src, args.K, args.bbox, args.masks)
+        items = folder_items(src, args.K, args.bbox, args.masks, one_assembly=args.one_assembly)
     else:
         if args.K or args.bbox or args.masks:
             raise PixieError("a manifest carries K and bbox/mask per row; drop --K/--bbox/--masks")
+        if args.one_assembly:
+            raise PixieError("--one-assembly is for a folder batch; in a manifest, name each photo's assembly in an "
+                             "'assembly' column")
         items = read_manifest(src)
     out = output_dir(args.output, what="output folder")
     not_an_input([out, *(out / n for n in BATCH_OUTPUTS)], [src, args.refs, args.mesh, args.config,
@@ -403,6 +408,12 @@ def _estimate_batch(args: argparse.Namespace) -> int:
     print(f"{s.n_items} images: {s.n_cached} cached, {s.n_run} run ({s.n_failed} failed in all) in {s.seconds:.0f} s"
           f"{f' on {s.workers} Ray workers' if args.ray else ''}")
     print(f"results -> {s.results_csv} (BOP), {s.results_jsonl}; overlays -> {s.html}")
+    for a in s.assemblies or []:  # suspect first
+        sus = [f"{p['name']} ({p['verdict']})" for p in a["parts"] if p["verdict"] in SUSPECT_VERDICTS]
+        print(f"assembly {a['assembly']} ({a['n_photos']} photos judged together): "
+              + (f"{len(sus)} suspect: " + ", ".join(sus) if sus else "no suspect part"))
+    if s.assemblies:
+        print(f"assemblies -> {s.results_csv.parent / 'assemblies.json'}")
     return 0
 
 
@@ -575,6 +586,9 @@ def _add_estimate_args(e: argparse.ArgumentParser) -> None:
     e.add_argument("--proposals", type=int, help="--detect: proposals estimated (default: config detect.proposals, 5)")
     e.add_argument("--instances", type=int, default=1, help="--detect: at most this many instances (default 1)")
     e.add_argument("--masks", help="--batch FOLDER: folder of masks named like the images")
+    e.add_argument("--one-assembly", action="store_true", help="--batch FOLDER: the photos show one physical "
+                   "assembly from several viewpoints; its part report is judged over all of them (assemblies.json; "
+                   "a manifest names each photo's assembly in an 'assembly' column)")
     e.add_argument("-o", "--output", help="result JSON (one photo) or output folder (--batch)")
     e.add_argument("--overlay", help="PNG with the model drawn at the estimate")
     e.add_argument("--no-overlays", action="store_true", help="--batch: skip the overlay pictures")

@@ -56,8 +56,8 @@ from pixie.cues.part_moves import (MoveFit, explain_away, explained, move_eviden
 from pixie.geometry.render import Renderer
 from pixie.pose.results import SUSPECT_VERDICTS
 
-__all__ = ["VERDICTS", "PartSupport", "report_kwargs", "part_renderers", "complement_renderers", "part_support",
-           "part_score", "judge_parts", "robust_part_fit",
+__all__ = ["VERDICTS", "PartSupport", "AssemblyPart", "report_kwargs", "part_renderers", "complement_renderers",
+           "part_support", "part_score", "part_scores", "judge_parts", "combine_views", "robust_part_fit",
            "hidden_from_runner_up", "is_flip_runner_up"]
 
 VERDICTS = ("present", "missing", "displaced", "wrong", "not visible")
@@ -89,10 +89,6 @@ class PartSupport:
     size_gain: float = 0.0  # the best resize's support gain (part_resizes, move_evidence): a part of the wrong size
     size: str = ""  # that resize, in words ('1.5x as long along z, low end kept'); '' when none was tried
     size_support: float = 0.0  # the support of the resized part's own contour pixels at that resize
-    unexplained: float = 0.0  # photo edge pixels no model contour explains, per pixel of its inner region
-    n_inner: int = 0  # the pixels of that inner region (its visible pixels away from every model contour)
-    unexplained_ring: float = 0.0  # ... per pixel of the other parts' region around it (within ring_px)
-    n_ring: int = 0
     verdict: str = ""
     judged_at: str = ""  # 'runner-up': hidden at the chosen pose, judged at the runner-up pose (config.parts.alt_gap)
     uv: np.ndarray = field(default_factory=lambda: np.zeros((0, 2)), repr=False)  # its contour points, photo px
@@ -109,9 +105,7 @@ class PartSupport:
                 "exclusive_shifted_support": round(self.exclusive_shifted, 4),
                 "move_gain": round(self.move_gain, 4), "move": self.move, "move_support": round(self.move_support, 4),
                 "move_explained_by": self.move_explained_by, "size_gain": round(self.size_gain, 4), "size": self.size,
-                "size_support": round(self.size_support, 4), "unexplained": round(self.unexplained, 5),
-                "n_inner": self.n_inner, "unexplained_ring": round(self.unexplained_ring, 5), "n_ring": self.n_ring,
-                "judged_at": self.judged_at}
+                "size_support": round(self.size_support, 4), "judged_at": self.judged_at}
 
     @classmethod
     def from_dict(cls, d: dict) -> "PartSupport":
@@ -123,10 +117,7 @@ class PartSupport:
                    n_revealed=d.get("n_revealed", 0), exclusive_shifted=d.get("exclusive_shifted_support", 0.0),
                    move_gain=d.get("move_gain", 0.0), move=d.get("move", ""), move_support=d.get("move_support", 0.0),
                    move_explained_by=d.get("move_explained_by", -1), size_gain=d.get("size_gain", 0.0),
-                   size=d.get("size", ""), size_support=d.get("size_support", 0.0),
-                   unexplained=d.get("unexplained", 0.0), n_inner=d.get("n_inner", 0),
-                   unexplained_ring=d.get("unexplained_ring", 0.0), n_ring=d.get("n_ring", 0),
-                   judged_at=d.get("judged_at", ""))
+                   size=d.get("size", ""), size_support=d.get("size_support", 0.0), judged_at=d.get("judged_at", ""))
 
 
 def report_kwargs(pc: PartsConfig) -> tuple[dict, dict]:
@@ -225,36 +216,6 @@ def coarse_pixels(xy: np.ndarray, sel: np.ndarray, shape: tuple[int, int], detai
     return sel & big[lab[y, x]]
 
 
-def unexplained_edges(pe: PhotoEdges, xy: np.ndarray, ori: np.ndarray, radius: int = 3) -> np.ndarray:
-    """(size, size) bool: the crop pixels holding a photo edge that no model contour pixel (``xy``, ``ori``: every
-    kind, creases included) of a like orientation (±1 of 8 bins) explains within ``radius`` px. On a part that is
-    where the model has it, few remain (highlights, shadows, detail); a part shifted, turned or of another size puts
-    its own outline where the model has none."""
-    out = np.zeros((pe.size, pe.size), bool)
-    if not len(pe.edge_xy):
-        return out
-    ang = np.mod(np.arctan2(pe.edge_dir[:, 1], pe.edge_dir[:, 0]), np.pi)
-    lone = ~explained(pe.edge_xy, ang, near_maps(xy, ori, (pe.size, pe.size), radius=radius))
-    x = np.clip(np.rint(pe.edge_xy[lone, 0]).astype(int), 0, pe.size - 1)
-    y = np.clip(np.rint(pe.edge_xy[lone, 1]).astype(int), 0, pe.size - 1)
-    out[y, x] = True
-    return out
-
-
-def part_regions(part_map: np.ndarray, k: int, allowed: np.ndarray, contour: np.ndarray, ring_px: int
-                 ) -> tuple[np.ndarray, np.ndarray]:
-    """Part ``k``'s inner region (its visible pixels, in ``allowed``, not within the model's contour band
-    ``contour``) and its ring (the other parts' visible pixels within ``ring_px`` of it, also away from ``contour``),
-    both (H, W) bool: where :func:`unexplained_edges` are counted for the part."""
-    own = (part_map == k) & allowed
-    inner = own & ~contour
-    if ring_px <= 0 or not own.any():
-        return inner, np.zeros_like(own)
-    k_ = 2 * int(ring_px) + 1
-    near = cv2.dilate(own.astype(np.uint8), cv2.getStructuringElement(cv2.MORPH_ELLIPSE, (k_, k_))) > 0
-    return inner, near & ~own & (part_map >= 0) & allowed & ~contour
-
-
 def part_support(renderer: Renderer, face_parts: np.ndarray, part_names, pe: PhotoEdges, T: np.ndarray, *,
                  fit_px: float = 1.5, max_bin_gap: int = 1, shift_frac: float = 0.12, shift_step: float = 2.0,
                  renderers: list[Renderer] | None = None, min_points: int = 12, kinds=(0, 1, 2),
@@ -262,8 +223,7 @@ def part_support(renderer: Renderer, face_parts: np.ndarray, part_names, pe: Pho
                  complements: list[tuple[Renderer, np.ndarray]] | None = None,
                  moves: bool = False, min_visible: float = 0.2, move_below: float = 0.9, move_changed: float = 0.3,
                  move_px: float = 4.0, move_collide: bool = True, solids: PartSolids | None = None,
-                 detail_px: float = 0.0, contrast_px: int = 3, resizes: bool = False,
-                 ring_frac: float = 0.06) -> list[PartSupport]:
+                 detail_px: float = 0.0, contrast_px: int = 3, resizes: bool = False) -> list[PartSupport]:
     """Every part's support at pose ``T`` (verdicts not yet set: :func:`judge_parts`).
 
     Parameters
@@ -296,19 +256,12 @@ def part_support(renderer: Renderer, face_parts: np.ndarray, part_names, pe: Pho
     resizes : also test the part longer or shorter along the model's axes (:func:`part_resizes`: ``size_gain`` and
         ``size``), for the parts the 3D moves would test (``min_visible``, ``move_below``, ``move_changed``,
         ``move_px``, ``move_collide`` apply): a part of the wrong size
-    ring_frac : ``unexplained_ring`` counts the other parts' pixels within this share of the box's longer side
     """
     face_parts = np.asarray(face_parts)
     n_parts = len(part_names)
     step_mm = step_frac * renderer.mesh.diameter
     r = renderer.render(T, pe.K, pe.size, pe.size)
     xy, ori, part, part_map, kind = part_contours(r, face_parts, step_mm=step_mm)
-    lone = unexplained_edges(pe, xy, ori, radius=contrast_px)  # every contour kind explains photo edges
-    band = np.zeros(part_map.shape, np.uint8)
-    if len(xy):
-        band[np.clip(np.rint(xy[:, 1]).astype(int), 0, pe.size - 1),
-             np.clip(np.rint(xy[:, 0]).astype(int), 0, pe.size - 1)] = 1
-    band = cv2.dilate(band, np.ones((2 * contrast_px + 1,) * 2, np.uint8)) > 0
     keep = np.isin(kind, np.asarray(kinds))
     xy, ori, part = xy[keep], ori[keep], part[keep]
     d, inside = edge_distances(pe, xy, ori, max_bin_gap, fit_px) if len(xy) else (np.zeros(0), np.zeros(0, bool))
@@ -322,7 +275,6 @@ def part_support(renderer: Renderer, face_parts: np.ndarray, part_names, pe: Pho
     box_side = float(max(pe.box[2] - pe.box[0], pe.box[3] - pe.box[1]))
     shifts = _shift_grid(max(shift_frac * box_side, 2.0), shift_step)
     allowed = pe.allowed
-    ring_px = int(round(ring_frac * box_side))
     out = []
     for k in range(n_parts):
         own = (part == k) & inside
@@ -361,14 +313,10 @@ def part_support(renderer: Renderer, face_parts: np.ndarray, part_names, pe: Pho
                 dw, win = edge_distances(pe, wxy[new_px], wori[new_px], max_bin_gap, fit_px)
                 n_rev = int(win.sum())
                 rev = float((dw[win] <= fit_px).mean()) if n_rev else 0.0
-        inner_k, ring_k = part_regions(part_map, k, allowed, band, ring_px)
-        n_in, n_ring = int(inner_k.sum()), int(ring_k.sum())
         out.append(PartSupport(index=k, name=str(part_names[k]), support=support, relative=0.0, shifted=best,
                                shift_px=best_shift, visible=visible, n_points=n, colour=colour,
                                exclusive=excl, n_exclusive=n_excl, revealed=rev, n_revealed=n_rev,
                                exclusive_shifted=excl_shifted,
-                               unexplained=float(lone[inner_k].mean()) if n_in else 0.0, n_inner=n_in,
-                               unexplained_ring=float(lone[ring_k].mean()) if n_ring else 0.0, n_ring=n_ring,
                                uv=pe.to_photo(xy[own]) if n else np.zeros((0, 2)), hit=hit[own]))
     judged = [p.support for p in out if p.n_points >= min_points]
     med = float(np.median(judged)) if judged else 0.0
@@ -453,9 +401,7 @@ def judge_parts(parts: list[PartSupport], *, flag_below: float = 0.6, colour_wei
     (:func:`part_resizes`) gains at least ``resize_gain`` (and more than a passing move) is ``wrong``: a part of
     another size is mounted there (its ``size`` says how).
     """
-    judged = [p for p in parts if p.n_points >= min_points and p.visible >= min_visible]
-    med = float(np.median([p.support for p in judged])) if judged else 0.0
-    med_colour = float(np.median([p.colour for p in judged])) if judged else 1.0
+    med, med_colour = _medians(parts, min_points, min_visible)
     for p in parts:
         if p.n_points < min_points or p.visible < min_visible or med <= 0:
             p.verdict = "not visible"
@@ -472,6 +418,87 @@ def judge_parts(parts: list[PartSupport], *, flag_below: float = 0.6, colour_wei
         else:
             p.verdict = "missing"
     return parts
+
+
+def _medians(parts: list[PartSupport], min_points: int, min_visible: float) -> tuple[float, float]:
+    """The median support and median colour consistency of the parts judged in one photo (the references of
+    :func:`part_score`); (0, 1) when none is judged."""
+    judged = [p for p in parts if p.n_points >= min_points and p.visible >= min_visible]
+    if not judged:
+        return 0.0, 1.0
+    return float(np.median([p.support for p in judged])), float(np.median([p.colour for p in judged]))
+
+
+def part_scores(parts: list[PartSupport], *, flag_below: float = 0.6, colour_weight: float = 0.0,
+                revealed_weight: float = 0.0, shift_weight: float = 0.0, supported_above: float = 1.0,
+                min_points: int = 12, min_visible: float = 0.2, **_) -> list[float | None]:
+    """Each part's :func:`part_score` in one photo as :func:`judge_parts` uses it (same keywords; the others are
+    ignored): None for a part it would judge ``not visible``, and at least ``flag_below`` for a part whose relative
+    edge support is at least ``supported_above`` (a view that would never flag it)."""
+    med, med_colour = _medians(parts, min_points, min_visible)
+    out: list[float | None] = []
+    for p in parts:
+        if p.n_points < min_points or p.visible < min_visible or med <= 0:
+            out.append(None)
+            continue
+        s = part_score(p, colour_weight, med_colour, revealed_weight, med, min_points, shift_weight)
+        out.append(max(s, flag_below) if p.support / med >= supported_above else s)
+    return out
+
+
+@dataclass(kw_only=True)
+class AssemblyPart:
+    """One part's verdict over several photos of one assembly (:func:`combine_views`)."""
+
+    index: int
+    name: str
+    verdict: str  # as a part's in one photo: present / missing / displaced / wrong / not visible
+    score: float  # the mean of its scores over the photos that judge it (nan when none does)
+    n_views: int  # the photos that judge it (it is visible enough in them)
+    view_verdicts: list[str]  # its verdict in each photo, in the order given
+
+    def as_dict(self) -> dict:
+        return {"index": self.index, "name": self.name, "verdict": self.verdict,
+                "score": None if not np.isfinite(self.score) else round(self.score, 4), "n_views": self.n_views,
+                "view_verdicts": list(self.view_verdicts)}
+
+
+def combine_views(reports: list[list[PartSupport]], **judge_kw) -> list[AssemblyPart]:
+    """The part report of one assembly seen in several photos: each part's :func:`part_scores` averaged over the
+    photos that judge it, flagged when the mean is below ``flag_below`` (``judge_kw``: :func:`judge_parts`'s keywords,
+    ``report_kwargs(config.parts)[1]``).
+
+    One photo's evidence about a part is noisy: it is half hidden, painted like what is behind it, or one of its
+    edges falls on clutter. Over photos from other viewpoints the noise averages out and a defect, which is there
+    in every photo, does not. A flagged part takes the kind (missing / displaced / wrong) that most of the photos
+    that flag it give, ties to the photo with the lowest score; 'missing' when no single photo flags it. A part no
+    photo judges is 'not visible'. ``reports``: each photo's :func:`part_support` records of the same mesh (verdicts
+    as :func:`judge_parts` set them, or unset). The verdict rests on the score: the 3D-move and resize evidence
+    (off by default) only names the kind, through the photos' verdicts.
+    """
+    if not reports:
+        return []
+    n = len(reports[0])
+    if any(len(r) != n for r in reports):
+        raise ValueError("combine_views: every photo's report must list the same parts")
+    flag_below = judge_kw.get("flag_below", 0.6)
+    scores = [part_scores(r, **judge_kw) for r in reports]
+    out = []
+    for k in range(n):
+        mine = [(s[k], r[k].verdict) for s, r in zip(scores, reports) if s[k] is not None]
+        views = [r[k].verdict for r in reports]
+        if not mine:
+            out.append(AssemblyPart(index=k, name=reports[0][k].name, verdict="not visible", score=float("nan"),
+                                    n_views=0, view_verdicts=views))
+            continue
+        mean = float(np.mean([s for s, _ in mine]))
+        verdict = "present"
+        if mean < flag_below:
+            kinds = [v for _, v in sorted(mine) if v in SUSPECT_VERDICTS]
+            verdict = max(kinds, key=lambda v: (kinds.count(v), -kinds.index(v))) if kinds else "missing"
+        out.append(AssemblyPart(index=k, name=reports[0][k].name, verdict=verdict, score=mean, n_views=len(mine),
+                                view_verdicts=views))
+    return out
 
 
 def robust_part_fit(renderer: Renderer, face_parts: np.ndarray, part_names, pe: PhotoEdges, T: np.ndarray, *,
