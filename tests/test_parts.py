@@ -612,7 +612,7 @@ def test_combine_views_averages_each_parts_score_over_the_photos_that_see_it():
     one photo only is present over the three (one photo's noise), a part unsupported in every photo is flagged with
     the kind most photos give, a part visible in no photo is not visible, and one judged in a single photo takes
     that photo's evidence alone."""
-    from pixie.cues.parts import combine_views, part_scores
+    from pixie.cues.part_views import combine_views, part_scores
 
     def photo(noisy, defect, hidden_in_this):
         return [_rec(0, 0.8), _rec(1, 0.75), _rec(2, noisy, revealed=0.3), _rec(3, defect, revealed=0.5),
@@ -645,7 +645,7 @@ def test_combine_views_averages_each_parts_score_over_the_photos_that_see_it():
 def test_a_removed_part_is_reported_missing_over_three_photos_and_the_complete_assembly_has_none(lego):
     """The part report of three photos of one assembly (three viewpoints, the true pose) judged together: the
     removed brick is missing, no other part is flagged, and the complete assembly flags none."""
-    from pixie.cues.parts import combine_views
+    from pixie.cues.part_views import combine_views
 
     mesh = lego["mesh"]
     for asm, removed in ((lego["bad"], lego["removed"]), (lego["asm"], None)):
@@ -662,7 +662,8 @@ def test_a_batch_judges_the_photos_of_each_assembly_together():
     """pixie.app.batch.assembly_reports on batch records: photos grouped by their 'assembly' (and object), a failed
     estimate left out, photos without an assembly left alone, assemblies with suspect parts first; the page lists
     them above the photos."""
-    from pixie.app.batch import _html, assembly_reports
+    from pixie.app.assemblies import assembly_reports
+    from pixie.app.batch import _html
 
     def rec(row, name, parts, failed=False, assembly=None):
         d = [p.as_dict() for p in judge_parts(parts, **JUDGE)]

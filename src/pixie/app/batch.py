@@ -50,12 +50,12 @@ import cv2
 import numpy as np
 
 from pixie.geometry.camera import parse_box, parse_K
+from pixie.app.assemblies import ASSEMBLY_NOTE, assembly_html, assembly_reports
 from pixie.app.cluster import WorkerSpec, ray_map, serial_map
 from pixie.app.notes import Notes, annotate, collect_warnings
 from pixie.app.runner import Journal
 from pixie.app.track import read_pose_file
 from pixie.config import PixieConfig
-from pixie.cues.parts import PartSupport, combine_views, report_kwargs
 from pixie.errors import ConfigError, ImageError, PixieError, UsageError
 from pixie.pipeline.estimator import PoseEstimator
 from pixie.eval.datasets import PoseEstimate, write_results_csv
@@ -386,35 +386,6 @@ def run_batch(items: list[BatchItem], out_dir: str | Path, config: PixieConfig, 
                         out / "results.csv", out / "results.jsonl", out / "index.html", n_workers, assemblies)
 
 
-ASSEMBLY_NOTE = ("photos with the same 'assembly' judged together: each part's score (pixie.cues.parts.part_score, "
-                 "as in one photo's report) averaged over the photos that see it (visible enough to judge), flagged "
-                 "below config.parts.flag_below; n_views = those photos, view_verdicts = its verdict in each photo")
-
-
-def assembly_reports(records: list[dict], config: PixieConfig) -> list[dict]:
-    """One combined part report per assembly: the records (batch results) with the same ``assembly`` and object
-    whose estimate has a part report, judged together (:func:`pixie.cues.parts.combine_views` with
-    ``config.parts``' thresholds); failed estimates are left out (their pose, and so their evidence, is not
-    trusted). Assemblies with suspect parts come first."""
-    groups: dict[tuple, list[dict]] = {}
-    for r in records:
-        res = r.get("result") or {}
-        if r.get("assembly") and res.get("parts") and not res.get("failed"):
-            groups.setdefault((r["assembly"], r.get("obj_id", 1), r.get("refs")), []).append(r)
-    judge = report_kwargs(config.parts)[1]
-    out = []
-    for (name, obj_id, _), rs in groups.items():
-        reports = [[PartSupport.from_dict(p) for p in r["result"]["parts"]] for r in rs]
-        if len({len(x) for x in reports}) != 1:
-            continue  # not the same parts: not one model (a changed reference set)
-        parts = combine_views(reports, **judge)
-        out.append({"assembly": name, "obj_id": obj_id, "n_photos": len(rs), "photos": [r["name"] for r in rs],
-                    "rows": [r["row"] for r in rs],
-                    "suspect": [p.name for p in parts if p.verdict in SUSPECT_VERDICTS],
-                    "parts": [p.as_dict() for p in parts]})
-    return sorted(out, key=lambda a: (-len(a["suspect"]), str(a["assembly"])))
-
-
 def _photo_overlays(records: list[dict], out: Path) -> None:
     """One overlay per photo with several objects: every object's estimate drawn into it (``*_all.png``); each
     record of that photo then points to it as ``photo_overlay``."""
@@ -455,27 +426,6 @@ def suspect_first(records: list[dict]) -> list[dict]:
     return sorted(records, key=lambda r: (-n_suspect(r), r["row"]))
 
 
-def _assembly_html(assemblies: list[dict]) -> str:
-    """The page's table of assemblies judged over several photos (suspect first)."""
-    if not assemblies:
-        return ""
-    rows = []
-    for a in assemblies:
-        sus = [p for p in a["parts"] if p["verdict"] in SUSPECT_VERDICTS]
-        what = ("<b>suspect parts:</b> " + ", ".join(
-            f"{html.escape(p['name'])} ({p['verdict']}, mean score {p['score']:.2f} over {p['n_views']} photos)"
-            for p in sus)) if sus else "no suspect part"
-        hidden = [p["name"] for p in a["parts"] if p["verdict"] == "not visible"]
-        if hidden:
-            what += "<br>not visible in any photo: " + ", ".join(html.escape(h) for h in hidden)
-        rows.append(f"<tr><td>{html.escape(str(a['assembly']))}</td><td>{a['n_photos']}</td><td>{what}</td>"
-                    f"<td>{html.escape(', '.join(a['photos']))}</td></tr>")
-    return ("<h2>Assemblies (their photos judged together)</h2><p>Each part's score is averaged over the photos that "
-            "see it; a part is suspect when the mean is below the threshold of one photo's report.</p>"
-            "<table><tr><th>assembly</th><th>photos</th><th>part report</th><th>which photos</th></tr>"
-            + "\n".join(rows) + "</table><h2>Photos</h2>")
-
-
 def _html(records: list[dict], n_total: int, config: PixieConfig, assemblies: list[dict] | None = None) -> str:
     rows = []
     with_parts = any(r["result"].get("parts") for r in records)
@@ -504,7 +454,7 @@ def _html(records: list[dict], n_total: int, config: PixieConfig, assemblies: li
     return f"""<!doctype html><html><head><meta charset="utf-8"><title>pixie batch</title>
 <style>body{{font-family:sans-serif}} td{{padding:4px;vertical-align:top;border-bottom:1px solid #ddd}}</style></head>
 <body><h1>pixie batch: {len(records)} of {n_total} images done</h1>
-{_assembly_html(assemblies or [])}
+{assembly_html(assemblies or [])}
 {"<p>Part report: photos with suspect (missing, displaced or wrong) parts come first; on the overlays parts are green (present), red (missing), orange (displaced), magenta (wrong), grey (not visible).</p>" if with_parts else ""}
 <p>preset {html.escape(str(config.preset))}, config digest {config.digest()}. Overlay: model contour at the estimate (red),
 object axes at its origin (x red, y green, z blue), the given box (yellow). Confidence = best score / (best + second

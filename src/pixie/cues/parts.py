@@ -56,8 +56,8 @@ from pixie.cues.part_moves import (MoveFit, explain_away, explained, move_eviden
 from pixie.geometry.render import Renderer
 from pixie.pose.results import SUSPECT_VERDICTS
 
-__all__ = ["VERDICTS", "PartSupport", "AssemblyPart", "report_kwargs", "part_renderers", "complement_renderers",
-           "part_support", "part_score", "part_scores", "judge_parts", "combine_views", "robust_part_fit",
+__all__ = ["VERDICTS", "PartSupport", "report_kwargs", "part_renderers", "complement_renderers", "part_support",
+           "part_score", "photo_medians", "judge_parts", "robust_part_fit",
            "hidden_from_runner_up", "is_flip_runner_up"]
 
 VERDICTS = ("present", "missing", "displaced", "wrong", "not visible")
@@ -401,7 +401,7 @@ def judge_parts(parts: list[PartSupport], *, flag_below: float = 0.6, colour_wei
     (:func:`part_resizes`) gains at least ``resize_gain`` (and more than a passing move) is ``wrong``: a part of
     another size is mounted there (its ``size`` says how).
     """
-    med, med_colour = _medians(parts, min_points, min_visible)
+    med, med_colour = photo_medians(parts, min_points, min_visible)
     for p in parts:
         if p.n_points < min_points or p.visible < min_visible or med <= 0:
             p.verdict = "not visible"
@@ -420,85 +420,13 @@ def judge_parts(parts: list[PartSupport], *, flag_below: float = 0.6, colour_wei
     return parts
 
 
-def _medians(parts: list[PartSupport], min_points: int, min_visible: float) -> tuple[float, float]:
+def photo_medians(parts: list[PartSupport], min_points: int, min_visible: float) -> tuple[float, float]:
     """The median support and median colour consistency of the parts judged in one photo (the references of
     :func:`part_score`); (0, 1) when none is judged."""
     judged = [p for p in parts if p.n_points >= min_points and p.visible >= min_visible]
     if not judged:
         return 0.0, 1.0
     return float(np.median([p.support for p in judged])), float(np.median([p.colour for p in judged]))
-
-
-def part_scores(parts: list[PartSupport], *, flag_below: float = 0.6, colour_weight: float = 0.0,
-                revealed_weight: float = 0.0, shift_weight: float = 0.0, supported_above: float = 1.0,
-                min_points: int = 12, min_visible: float = 0.2, **_) -> list[float | None]:
-    """Each part's :func:`part_score` in one photo as :func:`judge_parts` uses it (same keywords; the others are
-    ignored): None for a part it would judge ``not visible``, and at least ``flag_below`` for a part whose relative
-    edge support is at least ``supported_above`` (a view that would never flag it)."""
-    med, med_colour = _medians(parts, min_points, min_visible)
-    out: list[float | None] = []
-    for p in parts:
-        if p.n_points < min_points or p.visible < min_visible or med <= 0:
-            out.append(None)
-            continue
-        s = part_score(p, colour_weight, med_colour, revealed_weight, med, min_points, shift_weight)
-        out.append(max(s, flag_below) if p.support / med >= supported_above else s)
-    return out
-
-
-@dataclass(kw_only=True)
-class AssemblyPart:
-    """One part's verdict over several photos of one assembly (:func:`combine_views`)."""
-
-    index: int
-    name: str
-    verdict: str  # as a part's in one photo: present / missing / displaced / wrong / not visible
-    score: float  # the mean of its scores over the photos that judge it (nan when none does)
-    n_views: int  # the photos that judge it (it is visible enough in them)
-    view_verdicts: list[str]  # its verdict in each photo, in the order given
-
-    def as_dict(self) -> dict:
-        return {"index": self.index, "name": self.name, "verdict": self.verdict,
-                "score": None if not np.isfinite(self.score) else round(self.score, 4), "n_views": self.n_views,
-                "view_verdicts": list(self.view_verdicts)}
-
-
-def combine_views(reports: list[list[PartSupport]], **judge_kw) -> list[AssemblyPart]:
-    """The part report of one assembly seen in several photos: each part's :func:`part_scores` averaged over the
-    photos that judge it, flagged when the mean is below ``flag_below`` (``judge_kw``: :func:`judge_parts`'s keywords,
-    ``report_kwargs(config.parts)[1]``).
-
-    One photo's evidence about a part is noisy: it is half hidden, painted like what is behind it, or one of its
-    edges falls on clutter. Over photos from other viewpoints the noise averages out and a defect, which is there
-    in every photo, does not. A flagged part takes the kind (missing / displaced / wrong) that most of the photos
-    that flag it give, ties to the photo with the lowest score; 'missing' when no single photo flags it. A part no
-    photo judges is 'not visible'. ``reports``: each photo's :func:`part_support` records of the same mesh (verdicts
-    as :func:`judge_parts` set them, or unset). The verdict rests on the score: the 3D-move and resize evidence
-    (off by default) only names the kind, through the photos' verdicts.
-    """
-    if not reports:
-        return []
-    n = len(reports[0])
-    if any(len(r) != n for r in reports):
-        raise ValueError("combine_views: every photo's report must list the same parts")
-    flag_below = judge_kw.get("flag_below", 0.6)
-    scores = [part_scores(r, **judge_kw) for r in reports]
-    out = []
-    for k in range(n):
-        mine = [(s[k], r[k].verdict) for s, r in zip(scores, reports) if s[k] is not None]
-        views = [r[k].verdict for r in reports]
-        if not mine:
-            out.append(AssemblyPart(index=k, name=reports[0][k].name, verdict="not visible", score=float("nan"),
-                                    n_views=0, view_verdicts=views))
-            continue
-        mean = float(np.mean([s for s, _ in mine]))
-        verdict = "present"
-        if mean < flag_below:
-            kinds = [v for _, v in sorted(mine) if v in SUSPECT_VERDICTS]
-            verdict = max(kinds, key=lambda v: (kinds.count(v), -kinds.index(v))) if kinds else "missing"
-        out.append(AssemblyPart(index=k, name=reports[0][k].name, verdict=verdict, score=mean, n_views=len(mine),
-                                view_verdicts=views))
-    return out
 
 
 def robust_part_fit(renderer: Renderer, face_parts: np.ndarray, part_names, pe: PhotoEdges, T: np.ndarray, *,

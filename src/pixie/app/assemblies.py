@@ -1,0 +1,67 @@
+"""Assemblies in a batch: the photos of one physical assembly judged together (:mod:`pixie.cues.part_views`).
+
+A batch row names its assembly in the manifest's ``assembly`` column (or a folder batch is one assembly with
+``--one-assembly``); :func:`assembly_reports` combines the part reports of its photos, :func:`assembly_html` is the
+batch page's table of them (assemblies with suspect parts first).
+"""
+
+from __future__ import annotations
+
+import html
+
+from pixie.config import PixieConfig
+from pixie.cues.part_views import combine_views
+from pixie.cues.parts import PartSupport, report_kwargs
+from pixie.pose.results import SUSPECT_VERDICTS
+
+__all__ = ["ASSEMBLY_NOTE", "assembly_reports", "assembly_html"]
+
+
+ASSEMBLY_NOTE = ("photos with the same 'assembly' judged together: each part's score (pixie.cues.parts.part_score, "
+                 "as in one photo's report) averaged over the photos that see it (visible enough to judge), flagged "
+                 "below config.parts.flag_below; n_views = those photos, view_verdicts = its verdict in each photo")
+
+
+def assembly_reports(records: list[dict], config: PixieConfig) -> list[dict]:
+    """One combined part report per assembly: the records (batch results) with the same ``assembly`` and object
+    whose estimate has a part report, judged together (:func:`pixie.cues.parts.combine_views` with
+    ``config.parts``' thresholds); failed estimates are left out (their pose, and so their evidence, is not
+    trusted). Assemblies with suspect parts come first."""
+    groups: dict[tuple, list[dict]] = {}
+    for r in records:
+        res = r.get("result") or {}
+        if r.get("assembly") and res.get("parts") and not res.get("failed"):
+            groups.setdefault((r["assembly"], r.get("obj_id", 1), r.get("refs")), []).append(r)
+    judge = report_kwargs(config.parts)[1]
+    out = []
+    for (name, obj_id, _), rs in groups.items():
+        reports = [[PartSupport.from_dict(p) for p in r["result"]["parts"]] for r in rs]
+        if len({len(x) for x in reports}) != 1:
+            continue  # not the same parts: not one model (a changed reference set)
+        parts = combine_views(reports, **judge)
+        out.append({"assembly": name, "obj_id": obj_id, "n_photos": len(rs), "photos": [r["name"] for r in rs],
+                    "rows": [r["row"] for r in rs],
+                    "suspect": [p.name for p in parts if p.verdict in SUSPECT_VERDICTS],
+                    "parts": [p.as_dict() for p in parts]})
+    return sorted(out, key=lambda a: (-len(a["suspect"]), str(a["assembly"])))
+
+
+def assembly_html(assemblies: list[dict]) -> str:
+    """The page's table of assemblies judged over several photos (suspect first)."""
+    if not assemblies:
+        return ""
+    rows = []
+    for a in assemblies:
+        sus = [p for p in a["parts"] if p["verdict"] in SUSPECT_VERDICTS]
+        what = ("<b>suspect parts:</b> " + ", ".join(
+            f"{html.escape(p['name'])} ({p['verdict']}, mean score {p['score']:.2f} over {p['n_views']} photos)"
+            for p in sus)) if sus else "no suspect part"
+        hidden = [p["name"] for p in a["parts"] if p["verdict"] == "not visible"]
+        if hidden:
+            what += "<br>not visible in any photo: " + ", ".join(html.escape(h) for h in hidden)
+        rows.append(f"<tr><td>{html.escape(str(a['assembly']))}</td><td>{a['n_photos']}</td><td>{what}</td>"
+                    f"<td>{html.escape(', '.join(a['photos']))}</td></tr>")
+    return ("<h2>Assemblies (their photos judged together)</h2><p>Each part's score is averaged over the photos that "
+            "see it; a part is suspect when the mean is below the threshold of one photo's report.</p>"
+            "<table><tr><th>assembly</th><th>photos</th><th>part report</th><th>which photos</th></tr>"
+            + "\n".join(rows) + "</table><h2>Photos</h2>")
