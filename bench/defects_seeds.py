@@ -51,13 +51,13 @@ def fit_variants(rows: list[dict], cfg: PixieConfig, max_fa: float, variants=VAR
     return out
 
 
-def judge(rows: list[dict], cfg: PixieConfig, params: tuple) -> dict:
+def judge(rows: list[dict], cfg: PixieConfig, params: tuple, key: str = "parts") -> dict:
     """Recall per part defect type, their mean, and false alarms per correct assembly, per photo
     (:func:`defects_parts.table`) and per assembly, its photos judged together (``by_assembly``:
-    :func:`defects_parts.assembly_table`)."""
-    t = DP.table(rows, cfg, params)
+    :func:`defects_parts.assembly_table`). ``key``: 'parts' (the estimated poses) or 'parts_gt' (the true poses)."""
+    t = DP.table(rows, cfg, params, key=key)
     rec = {d: t[d]["recall"] for d in DP.PART_DEFECTS if d in t}
-    a = DP.assembly_table(rows, cfg, params)
+    a = DP.assembly_table(rows, cfg, params, key=key)
     arec = {d: a[d]["recall"] for d in DP.PART_DEFECTS if d in a}
     return dict(recall=rec, mean=float(np.mean(list(rec.values()))),
                 fa=t.get("none (correct assembly)", {}).get("false_alarms_per_image", 0.0),
@@ -84,6 +84,8 @@ def main(argv=None) -> int:
     ap.add_argument("--preset", default="default")
     ap.add_argument("--max-fa", type=float, default=0.05, help="the rule's false alarms per correct assembly")
     ap.add_argument("--variants", default=",".join(VARIANTS))
+    ap.add_argument("--configured-only", action="store_true", help="only the shipped thresholds on every seed (no "
+                    "fitting: seconds)")
     ap.add_argument("--out", type=Path, required=True)
     args = ap.parse_args(argv)
     cfg = PixieConfig.from_preset(args.preset)
@@ -94,16 +96,17 @@ def main(argv=None) -> int:
     for spec in args.rows:
         seed, _, files = spec.partition("=")
         rows[seed] = [r for f in files.split(",") for r in json.loads(Path(f).read_text())["rows"]]
-    if len(rows) < 2:
+    if len(rows) < 2 and not args.configured_only:
         ap.error("give the rows of at least two seeds")
     res: dict = {"max_fa": args.max_fa, "preset": args.preset, "n_rows": {s: len(r) for s, r in rows.items()},
                  "configured": {"params": list(configured(cfg))}, "fits": {}, "pairs": []}
     for s, r in rows.items():  # the shipped thresholds, no fitting
-        j = judge(r, cfg, configured(cfg))
-        res["configured"][s] = j
-        print(f"configured thresholds, seed {s}: per photo {_line(j)}\n{'':33s}per assembly {_line(j['by_assembly'])}",
-              flush=True)
-    for fs, fr in rows.items():
+        for key, at in (("parts", ""), ("parts_gt", ", at the true poses")):
+            j = judge(r, cfg, configured(cfg), key=key)
+            res["configured"][s + at] = j
+            print(f"configured thresholds, seed {s}{at}: per photo {_line(j)}\n{'':33s}per assembly "
+                  f"{_line(j['by_assembly'])} ({j['by_assembly']['n']})", flush=True)
+    for fs, fr in rows.items() if not args.configured_only else ():
         t0 = time.perf_counter()
         fits = fit_variants(fr, cfg, args.max_fa, variants)
         res["fits"][fs] = {v: list(p) for v, p in fits.items()}
@@ -115,11 +118,12 @@ def main(argv=None) -> int:
                 print(f"fit {fs} judged {js} ({tag}) {v:8s} {_line(j)} | params {tuple(p)}\n"
                       f"{'':39s}per assembly {_line(j['by_assembly'])}", flush=True)
         print(f"  (seed {fs} fitted in {time.perf_counter() - t0:.0f} s)", flush=True)
-    print("\n| variant | judged | held-out pairs | " + " | ".join(DP.PART_DEFECTS) + " | mean recall | FA per correct "
-          "assembly |")
-    print("|---|---|---|" + "---|" * len(DP.PART_DEFECTS) + "---|---|")
+    if not args.configured_only:
+        print("\n| variant | judged | held-out pairs | " + " | ".join(DP.PART_DEFECTS) + " | mean recall | FA per "
+              "correct assembly |")
+        print("|---|---|---|" + "---|" * len(DP.PART_DEFECTS) + "---|---|")
     res["held_out_means"] = {}
-    for v in variants:
+    for v in variants if not args.configured_only else ():
         ps = [p for p in res["pairs"] if p["variant"] == v and p["fit"] != p["judged"]]
         for unit, get in (("per photo", lambda p: p), ("per assembly", lambda p: p["by_assembly"])):
             m = {d: float(np.mean([get(p)["recall"][d] for p in ps])) for d in DP.PART_DEFECTS}
