@@ -46,7 +46,7 @@ sys.path.insert(0, str(REPO / "bench"))
 
 from pixie.config import PixieConfig  # noqa: E402
 from pixie.cues.edge_align import align_kwargs, edge_fit, photo_edges, photo_edges_kwargs  # noqa: E402
-from pixie.cues.part_views import combine_views  # noqa: E402
+from pixie.cues.part_views import combine_views, views_kwargs  # noqa: E402
 from pixie.cues.parts import (PartSupport, complement_renderers, hidden_from_runner_up, is_flip_runner_up,  # noqa: E402
                               judge_parts, part_renderers, part_support, report_kwargs, robust_part_fit)
 from pixie.eval import pose_error as M  # noqa: E402
@@ -236,12 +236,14 @@ def table(rows: list[dict], cfg: PixieConfig, params, key: str = "parts") -> dic
     return out
 
 
-def assembly_table(rows: list[dict], cfg: PixieConfig, params, key: str = "parts") -> dict:
+def assembly_table(rows: list[dict], cfg: PixieConfig, params, key: str = "parts", views: dict | None = None) -> dict:
     """:func:`table` per assembly instead of per photo: the photos of one scene (one assembly in one colour, seen
     from several viewpoints) judged together (:func:`pixie.cues.parts.combine_views` over their part records judged
     with ``params``). Recall of the defective part per defect type over the scenes; false alarms = flagged parts per
-    correct scene."""
+    correct scene. ``views``: :func:`pixie.cues.part_views.combine_views`' thresholds on the mean 3D-move / resize
+    gains (``views_kwargs(cfg.parts)`` when None)."""
     of = params if callable(params) else (lambda r: params)
+    views = views_kwargs(cfg.parts) if views is None else views
     scenes: dict[int, list[dict]] = {}
     for r in rows:
         if key in r:
@@ -250,7 +252,7 @@ def assembly_table(rows: list[dict], cfg: PixieConfig, params, key: str = "parts
     for sid, rs in sorted(scenes.items()):
         prm = of(rs[0])
         _, judge, _ = _kw(cfg, *prm[:5], resize_gain=prm[6] if len(prm) > 6 else float("inf"))
-        combined = combine_views([_judged(r[key], cfg, prm) for r in rs], **judge)
+        combined = combine_views([_judged(r[key], cfg, prm) for r in rs], **views, **judge)
         by.setdefault(rs[0]["defect"] or "none (correct assembly)", []).append((rs[0], combined))
     out: dict[str, dict] = {}
     for d, items in sorted(by.items()):

@@ -5,7 +5,8 @@ Each seed of ``bench/defects.py`` builds its own assemblies and defects, so a se
 seed's. For each fitting seed and each variant of the rule, the thresholds are chosen on that seed
 (:func:`defects_parts.choose`, then the 3D-move, runner-up and resize thresholds) at <= ``--max-fa`` false alarms per
 correct assembly; every other seed is judged with them. Variants: ``none`` (no 3D moves, no resizes: their grids
-restricted to off), ``moves``, ``resizes``, ``both`` (the bench's whole rule). The moves / resizes variants need rows
+restricted to off), ``moves``, ``resizes``, ``both`` (the bench's whole rule), ``views`` (the shipped thresholds per
+photo, and per assembly the thresholds on the mean 3D-move / resize gains over its photos, :func:`choose_views`). The moves / resizes variants need rows
 computed with ``--set parts.moves=true --set parts.move_gain=1.0 --set parts.resizes=true --set parts.resize_gain=1.0``
 (the evidence stored, no verdict from it in the re-alignment, so the poses are the shipped default's).
 
@@ -34,11 +35,14 @@ import defects_parts as DP  # noqa: E402
 from pixie.config import PixieConfig  # noqa: E402
 
 INF = float("inf")
-VARIANTS = ("none", "moves", "resizes", "both")
+VARIANTS = ("none", "moves", "resizes", "both", "views")
 
 
 def fit_variants(rows: list[dict], cfg: PixieConfig, max_fa: float, variants=VARIANTS) -> dict[str, tuple]:
     """The rule's parameters on ``rows`` per variant (:data:`VARIANTS`); the score's thresholds are chosen once."""
+    variants = [v for v in variants if v != "views"]  # fitted per assembly: choose_views
+    if not variants:
+        return {}
     base = tuple(DP.choose(rows, cfg, max_fa=max_fa))
     no_moves = base + (INF,)
     with_moves = DP.choose_moves(rows, cfg, base, max_fa=max_fa) if {"moves", "both"} & set(variants) else no_moves
@@ -51,13 +55,13 @@ def fit_variants(rows: list[dict], cfg: PixieConfig, max_fa: float, variants=VAR
     return out
 
 
-def judge(rows: list[dict], cfg: PixieConfig, params: tuple, key: str = "parts") -> dict:
+def judge(rows: list[dict], cfg: PixieConfig, params: tuple, key: str = "parts", views: dict | None = None) -> dict:
     """Recall per part defect type, their mean, and false alarms per correct assembly, per photo
     (:func:`defects_parts.table`) and per assembly, its photos judged together (``by_assembly``:
     :func:`defects_parts.assembly_table`). ``key``: 'parts' (the estimated poses) or 'parts_gt' (the true poses)."""
     t = DP.table(rows, cfg, params, key=key)
     rec = {d: t[d]["recall"] for d in DP.PART_DEFECTS if d in t}
-    a = DP.assembly_table(rows, cfg, params, key=key)
+    a = DP.assembly_table(rows, cfg, params, key=key, views=views)
     arec = {d: a[d]["recall"] for d in DP.PART_DEFECTS if d in a}
     return dict(recall=rec, mean=float(np.mean(list(rec.values()))),
                 fa=t.get("none (correct assembly)", {}).get("false_alarms_per_image", 0.0),
@@ -66,11 +70,41 @@ def judge(rows: list[dict], cfg: PixieConfig, params: tuple, key: str = "parts")
                                  n={d: a[d]["n"] for d in a}))
 
 
+VIEWS_GRID = [0.1, 0.15, 0.2, 0.25, 0.3, 0.4, 0.5, INF]  # the mean move / resize gain over an assembly's photos
+
+
+def choose_views(rows: list[dict], cfg: PixieConfig, params: tuple, max_fa: float) -> dict:
+    """(views_move_gain, views_resize_gain) of :data:`VIEWS_GRID` with the best mean recall per assembly
+    (:func:`defects_parts.assembly_table`, photos judged with ``params``) at <= ``max_fa`` false alarms per correct
+    assembly; ties to the fewer alarms, then to the larger thresholds."""
+    best, key = dict(views_move_gain=INF, views_resize_gain=INF), (-1.0, 0.0)
+    for mg in sorted(VIEWS_GRID, reverse=True):
+        for rg in sorted(VIEWS_GRID, reverse=True):
+            v = dict(views_move_gain=mg, views_resize_gain=rg)
+            a = DP.assembly_table(rows, cfg, params, views=v)
+            fa = a.get("none (correct assembly)", {}).get("false_alarms_per_assembly", 0.0)
+            if fa > max_fa + 1e-9:
+                continue
+            rec = float(np.mean([a[d]["recall"] for d in DP.PART_DEFECTS if d in a]))
+            if (rec, -fa) > key:
+                best, key = v, (rec, -fa)
+    return best
+
+
 def configured(cfg: PixieConfig) -> tuple:
     """The shipped thresholds as the rule's parameter tuple (defects_parts' order)."""
     pc = cfg.parts
     return (pc.flag_below, pc.colour_weight, pc.revealed_weight, pc.shift_weight, pc.move_gain if pc.moves else INF,
             pc.alt_gap, pc.resize_gain if pc.resizes else INF)
+
+
+def _json(x):
+    """Parameters for JSON: infinite thresholds (off) as null."""
+    if isinstance(x, dict):
+        return {k: _json(v) for k, v in x.items()}
+    if isinstance(x, (list, tuple)):
+        return [_json(v) for v in x]
+    return None if isinstance(x, float) and np.isinf(x) else x
 
 
 def _line(j: dict) -> str:
@@ -99,7 +133,7 @@ def main(argv=None) -> int:
     if len(rows) < 2 and not args.configured_only:
         ap.error("give the rows of at least two seeds")
     res: dict = {"max_fa": args.max_fa, "preset": args.preset, "n_rows": {s: len(r) for s, r in rows.items()},
-                 "configured": {"params": list(configured(cfg))}, "fits": {}, "pairs": []}
+                 "configured": {"params": _json(configured(cfg))}, "fits": {}, "pairs": []}
     for s, r in rows.items():  # the shipped thresholds, no fitting
         for key, at in (("parts", ""), ("parts_gt", ", at the true poses")):
             j = judge(r, cfg, configured(cfg), key=key)
@@ -108,14 +142,16 @@ def main(argv=None) -> int:
                   f"{_line(j['by_assembly'])} ({j['by_assembly']['n']})", flush=True)
     for fs, fr in rows.items() if not args.configured_only else ():
         t0 = time.perf_counter()
-        fits = fit_variants(fr, cfg, args.max_fa, variants)
-        res["fits"][fs] = {v: list(p) for v, p in fits.items()}
-        for v, p in fits.items():
+        fits = {v: (p, None) for v, p in fit_variants(fr, cfg, args.max_fa, variants).items()}
+        if "views" in variants:  # the shipped per-photo thresholds; the mean move / resize gains' fitted per assembly
+            fits["views"] = (configured(cfg), choose_views(fr, cfg, configured(cfg), args.max_fa))
+        res["fits"][fs] = {v: [_json(p), _json(vw)] for v, (p, vw) in fits.items()}
+        for v, (p, vw) in fits.items():
             for js, jr in rows.items():
-                j = judge(jr, cfg, p)
-                res["pairs"].append(dict(fit=fs, judged=js, variant=v, params=list(p), **j))
+                j = judge(jr, cfg, p, views=vw)
+                res["pairs"].append(dict(fit=fs, judged=js, variant=v, params=_json(p), views=_json(vw), **j))
                 tag = "fit itself" if js == fs else "held out"
-                print(f"fit {fs} judged {js} ({tag}) {v:8s} {_line(j)} | params {tuple(p)}\n"
+                print(f"fit {fs} judged {js} ({tag}) {v:8s} {_line(j)} | params {tuple(p)}{'' if vw is None else vw}\n"
                       f"{'':39s}per assembly {_line(j['by_assembly'])}", flush=True)
         print(f"  (seed {fs} fitted in {time.perf_counter() - t0:.0f} s)", flush=True)
     if not args.configured_only:

@@ -640,6 +640,17 @@ def test_combine_views_averages_each_parts_score_over_the_photos_that_see_it():
     with pytest.raises(ValueError, match="same parts"):
         combine_views([reports[0], reports[1][:4]], **JUDGE)
     assert combine_views([], **JUDGE) == []
+    # a brick one stud off keeps its contour supported: only its move's gain, averaged over the photos, tells
+    for r, gain in zip(reports, (0.5, 0.3, 0.4)):
+        r[1].move, r[1].move_gain = "+x 8.0 mm", gain
+        r[0].size, r[0].size_gain = "2x as long along z, low end kept", 0.1  # one photo's chance resize gain
+    r[0].size_gain = 0.45
+    assert [p.verdict for p in combine_views(reports, **JUDGE)][:2] == ["present", "present"]  # off by default
+    on = combine_views(reports, views_move_gain=0.35, views_resize_gain=0.25, **JUDGE)
+    assert [p.verdict for p in on][:3] == ["present", "displaced", "present"]  # part 0's sizes: mean 0.22 < 0.25
+    assert on[1].move == "+x 8.0 mm" and on[1].move_gain == pytest.approx(0.4) and on[0].size_gain == pytest.approx(
+        (0.45 + 0.1 + 0.1) / 3)
+    assert combine_views(reports, views_resize_gain=0.2, **JUDGE)[0].verdict == "wrong"
 
 
 def test_a_removed_part_is_reported_missing_over_three_photos_and_the_complete_assembly_has_none(lego):

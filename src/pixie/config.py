@@ -505,6 +505,11 @@ class PartsConfig(_Section):
     # parts.resizes=true turns it on
     resizes: bool = False
     resize_gain: float = 0.25
+    # one assembly in several photos (pixie.cues.part_views.combine_views; a batch's 'assembly' groups): a part whose
+    # resize (move) gains on average over its photos at least this is 'wrong' ('displaced'); needs the evidence
+    # (parts.resizes / parts.moves on); above 1: never (a gain is at most 1)
+    views_resize_gain: float = 2.0
+    views_move_gain: float = 2.0
     # a part not visible at the chosen pose takes its verdict at the runner-up (the best distinct hypothesis) when that
     # one is turned at least alt_min_deg from it and scores within alt_gap (pixie.cues.parts.is_flip_runner_up): the
     # defect of a near-symmetric assembly is often its only asymmetric detail, and the pose that hides it fits the
@@ -527,7 +532,8 @@ RANGES.update({"parts.fit_px": (0, 100, False), "parts.shift_frac": (0, 1, True)
                "parts.revealed_weight": (0, 100, True), "parts.shift_weight": (0, 100, True),
                "parts.move_below": (0, 100, True), "parts.move_gain": (-1, 1, True), "parts.move_changed": (0, 10, True),
                "parts.move_px": (0, 1000, True), "parts.alt_gap": (0, None, True),
-               "parts.resize_gain": (-1, 1, True),
+               "parts.resize_gain": (-1, 1, True), "parts.views_resize_gain": (0, 2, False),
+               "parts.views_move_gain": (0, 2, False),
                "parts.alt_min_deg": (0, 180, True)})
 
 

@@ -10,7 +10,7 @@ from __future__ import annotations
 import html
 
 from pixie.config import PixieConfig
-from pixie.cues.part_views import combine_views
+from pixie.cues.part_views import combine_views, views_kwargs
 from pixie.cues.parts import PartSupport, report_kwargs
 from pixie.pose.results import SUSPECT_VERDICTS
 
@@ -38,7 +38,7 @@ def assembly_reports(records: list[dict], config: PixieConfig) -> list[dict]:
         reports = [[PartSupport.from_dict(p) for p in r["result"]["parts"]] for r in rs]
         if len({len(x) for x in reports}) != 1:
             continue  # not the same parts: not one model (a changed reference set)
-        parts = combine_views(reports, **judge)
+        parts = combine_views(reports, **views_kwargs(config.parts), **judge)
         out.append({"assembly": name, "obj_id": obj_id, "n_photos": len(rs), "photos": [r["name"] for r in rs],
                     "rows": [r["row"] for r in rs],
                     "suspect": [p.name for p in parts if p.verdict in SUSPECT_VERDICTS],

@@ -16,10 +16,17 @@ from dataclasses import dataclass
 
 import numpy as np
 
+from pixie.config import PartsConfig
 from pixie.cues.parts import PartSupport, part_score, photo_medians
 from pixie.pose.results import SUSPECT_VERDICTS
 
-__all__ = ["AssemblyPart", "part_scores", "combine_views"]
+__all__ = ["AssemblyPart", "views_kwargs", "part_scores", "combine_views"]
+
+
+def views_kwargs(pc: PartsConfig) -> dict:
+    """:func:`combine_views`' keywords that ``config.parts`` sets (with ``report_kwargs(pc)[1]``, the judge's)."""
+    return dict(views_move_gain=pc.views_move_gain if pc.moves else float("inf"),
+                views_resize_gain=pc.views_resize_gain if pc.resizes else float("inf"))
 
 
 def part_scores(parts: list[PartSupport], *, flag_below: float = 0.6, colour_weight: float = 0.0,
@@ -49,25 +56,36 @@ class AssemblyPart:
     score: float  # the mean of its scores over the photos that judge it (nan when none does)
     n_views: int  # the photos that judge it (it is visible enough in them)
     view_verdicts: list[str]  # its verdict in each photo, in the order given
+    move_gain: float = 0.0  # the mean over those photos of its best 3D move's gain (0 where none was tried)
+    move: str = ""  # the move of the photo where it gained most ('' when none was tried)
+    size_gain: float = 0.0  # the same for its best resize
+    size: str = ""
 
     def as_dict(self) -> dict:
         return {"index": self.index, "name": self.name, "verdict": self.verdict,
                 "score": None if not np.isfinite(self.score) else round(self.score, 4), "n_views": self.n_views,
-                "view_verdicts": list(self.view_verdicts)}
+                "view_verdicts": list(self.view_verdicts), "move_gain": round(self.move_gain, 4), "move": self.move,
+                "size_gain": round(self.size_gain, 4), "size": self.size}
 
 
-def combine_views(reports: list[list[PartSupport]], **judge_kw) -> list[AssemblyPart]:
+def combine_views(reports: list[list[PartSupport]], *, views_move_gain: float = float("inf"),
+                  views_resize_gain: float = float("inf"), **judge_kw) -> list[AssemblyPart]:
     """The part report of one assembly seen in several photos: each part's :func:`part_scores` averaged over the
     photos that judge it, flagged when the mean is below ``flag_below`` (``judge_kw``: :func:`judge_parts`'s keywords,
     ``report_kwargs(config.parts)[1]``).
+
+    With the 3D-move / resize evidence in the records (``config.parts.moves`` / ``resizes``), a part whose best
+    resize gains on average (over the photos that judge it, 0 where none was tried) at least ``views_resize_gain``
+    is ``wrong``, else one whose best move gains on average at least ``views_move_gain`` is ``displaced``
+    (``config.parts.views_resize_gain`` / ``views_move_gain``): a brick one stud off or a part of another size keeps
+    most of its contour supported in every photo, and only the moved or resized part's contour tells.
 
     One photo's evidence about a part is noisy: it is half hidden, painted like what is behind it, or one of its
     edges falls on clutter. Over photos from other viewpoints the noise averages out and a defect, which is there
     in every photo, does not. A flagged part takes the kind (missing / displaced / wrong) that most of the photos
     that flag it give, ties to the photo with the lowest score; 'missing' when no single photo flags it. A part no
     photo judges is 'not visible'. ``reports``: each photo's :func:`part_support` records of the same mesh (verdicts
-    as :func:`judge_parts` set them, or unset). The verdict rests on the score: the 3D-move and resize evidence
-    (off by default) only names the kind, through the photos' verdicts.
+    as :func:`judge_parts` set them, or unset).
     """
     if not reports:
         return []
@@ -85,10 +103,20 @@ def combine_views(reports: list[list[PartSupport]], **judge_kw) -> list[Assembly
                                     n_views=0, view_verdicts=views))
             continue
         mean = float(np.mean([s for s, _ in mine]))
+        seen = [r[k] for s, r in zip(scores, reports) if s[k] is not None]
+        move_gain = float(np.mean([p.move_gain if p.move else 0.0 for p in seen]))
+        size_gain = float(np.mean([p.size_gain if p.size else 0.0 for p in seen]))
+        best_move = max(seen, key=lambda p: p.move_gain if p.move else -np.inf)
+        best_size = max(seen, key=lambda p: p.size_gain if p.size else -np.inf)
         verdict = "present"
-        if mean < flag_below:
+        if size_gain >= views_resize_gain:
+            verdict = "wrong"
+        elif move_gain >= views_move_gain:
+            verdict = "displaced"
+        elif mean < flag_below:
             kinds = [v for _, v in sorted(mine) if v in SUSPECT_VERDICTS]
             verdict = max(kinds, key=lambda v: (kinds.count(v), -kinds.index(v))) if kinds else "missing"
         out.append(AssemblyPart(index=k, name=reports[0][k].name, verdict=verdict, score=mean, n_views=len(mine),
-                                view_verdicts=views))
+                                view_verdicts=views, move_gain=move_gain, move=best_move.move,
+                                size_gain=size_gain, size=best_size.size))
     return out
