@@ -271,15 +271,19 @@ def assembly_table(rows: list[dict], cfg: PixieConfig, params, key: str = "parts
     return out
 
 
+def _markdown(t: dict, header: list[str], keys: list[str]) -> str:
+    """A table of ``t`` (defect -> its record): one row per defect, then ``n`` and ``keys`` ('-' where absent)."""
+    f = lambda x: "-" if x is None else f"{x:.2f}"  # noqa: E731
+    lines = ["| " + " | ".join(header) + " |", "|" + "---|" * len(header)]
+    lines += [f"| {d} | {r['n']} | " + " | ".join(f(r.get(k)) for k in keys) + " |" for d, r in t.items()]
+    return "\n".join(lines)
+
+
 def fmt_assembly(t: dict) -> str:
     """Markdown of an :func:`assembly_table`."""
-    lines = ["| defect | assemblies | recall of the defective part | not visible in any photo | false alarms / correct "
-             "assembly | assemblies flagged |", "|---|---|---|---|---|---|"]
-    f = lambda x: "-" if x is None else f"{x:.2f}"  # noqa: E731
-    for d, r in t.items():
-        lines.append(f"| {d} | {r['n']} | {f(r.get('recall'))} | {f(r.get('not_visible'))} | "
-                     f"{f(r.get('false_alarms_per_assembly'))} | {f(r.get('assemblies_flagged'))} |")
-    return "\n".join(lines)
+    return _markdown(t, ["defect", "assemblies", "recall of the defective part", "not visible in any photo",
+                         "false alarms / correct assembly", "assemblies flagged"],
+                     ["recall", "not_visible", "false_alarms_per_assembly", "assemblies_flagged"])
 
 
 def choose_moves(rows: list[dict], cfg: PixieConfig, params: tuple, grid=MOVE_GRID, max_fa: float = 0.1) -> tuple:
@@ -377,14 +381,11 @@ def mean_recall(t: dict) -> float:
 
 
 def fmt(t: dict) -> str:
-    lines = ["| defect | n | recall of the defective part | (visible) | right kind | not visible | other parts flagged / img |"
-             " false alarms / correct assembly | images flagged |", "|---|---|---|---|---|---|---|---|---|"]
-    f = lambda x: "-" if x is None else f"{x:.2f}"  # noqa: E731
-    for d, r in t.items():
-        lines.append(f"| {d} | {r['n']} | {f(r.get('recall'))} | {f(r.get('recall_visible'))} | {f(r.get('right_kind'))} | "
-                     f"{f(r.get('not_visible'))} | {f(r.get('other_parts_flagged_per_image'))} | "
-                     f"{f(r.get('false_alarms_per_image'))} | {f(r.get('images_flagged'))} |")
-    return "\n".join(lines)
+    """Markdown of a :func:`table`."""
+    return _markdown(t, ["defect", "n", "recall of the defective part", "(visible)", "right kind", "not visible",
+                         "other parts flagged / img", "false alarms / correct assembly", "images flagged"],
+                     ["recall", "recall_visible", "right_kind", "not_visible", "other_parts_flagged_per_image",
+                      "false_alarms_per_image", "images_flagged"])
 
 
 def main(argv=None) -> int:
