@@ -696,3 +696,28 @@ def test_a_batch_judges_the_photos_of_each_assembly_together():
     assert page.index("Assemblies (their photos judged together)") < page.index("<h2>Photos</h2>")
     assert "p3 (missing, mean score" in page
     assert assembly_reports([records[5]], PixieConfig()) == []  # no assembly named: no combined report
+
+
+def test_assembly_evidence_is_computed_without_changing_a_photos_own_verdict(tmp_path):
+    """parts.evidence tries the 3D moves and resizes (part_support's keywords) but judges no photo on them; a batch
+    turns it on only when some photo names an assembly and the assembly's verdict can use it."""
+    from pixie.app.batch import BatchItem, with_assembly_evidence
+    from pixie.cues.part_views import views_kwargs
+
+    cfg = PixieConfig.from_preset("default")
+    cfg.set("parts.evidence", True)
+    support, judge = report_kwargs(cfg.parts)
+    assert support["moves"] and support["resizes"] and judge["move_gain"] == judge["resize_gain"] == float("inf")
+    assert views_kwargs(cfg.parts) == dict(views_move_gain=cfg.parts.views_move_gain,
+                                           views_resize_gain=cfg.parts.views_resize_gain)
+    base = PixieConfig.from_preset("default")
+    assert not base.parts.evidence and views_kwargs(base.parts) == dict(views_move_gain=float("inf"),
+                                                                        views_resize_gain=float("inf"))
+    items = [BatchItem(tmp_path / "a.png", K), BatchItem(tmp_path / "b.png", K, assembly="unit 7")]
+    base.set("parts.views_move_gain", 0.3)
+    said: list[str] = []
+    on = with_assembly_evidence(base, items, said.append)
+    assert on.parts.evidence and not base.parts.evidence and said and "evidence" in said[0]
+    assert with_assembly_evidence(base, items[:1], said.append) is base  # no assembly named
+    base.set("parts.views_move_gain", 2.0)
+    assert base.parts.views_resize_gain > 1 and with_assembly_evidence(base, items, said.append) is base  # off

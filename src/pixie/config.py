@@ -510,6 +510,10 @@ class PartsConfig(_Section):
     # (parts.resizes / parts.moves on); above 1: never (a gain is at most 1)
     views_resize_gain: float = 2.0
     views_move_gain: float = 2.0
+    # compute the 3D-move and resize evidence of every photo even with parts.moves / parts.resizes off, for an
+    # assembly's verdict over its photos; no single photo is judged on it (a batch with 'assembly' groups turns it on
+    # when views_move_gain / views_resize_gain can flag: ~4 s more per photo on 2 busy cores)
+    evidence: bool = False
     # a part not visible at the chosen pose takes its verdict at the runner-up (the best distinct hypothesis) when that
     # one is turned at least alt_min_deg from it and scores within alt_gap (pixie.cues.parts.is_flip_runner_up): the
     # defect of a near-symmetric assembly is often its only asymmetric detail, and the pose that hides it fits the

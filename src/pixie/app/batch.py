@@ -37,6 +37,7 @@ One estimator per reference set serves its images (loaded or built once). Output
 
 from __future__ import annotations
 
+import copy
 import csv
 import hashlib
 import html
@@ -281,6 +282,22 @@ class BatchSummary:
     assemblies: list[dict] | None = None  # assembly_reports of the batch (photos judged together), when any
 
 
+def with_assembly_evidence(config: PixieConfig, items: list[BatchItem], echo: Callable[[str], None] = print
+                           ) -> PixieConfig:
+    """``config`` with ``parts.evidence`` on when some items name an assembly and the assembly's verdict can use the
+    3D-move / resize evidence (``parts.views_move_gain`` / ``views_resize_gain`` at most 1) that the config does not
+    compute yet; else ``config`` itself. A photo's own verdict does not change (pixie.cues.parts.report_kwargs)."""
+    pc = config.parts
+    wanted = (pc.views_move_gain <= 1 and not pc.moves) or (pc.views_resize_gain <= 1 and not pc.resizes)
+    if not any(it.assembly for it in items) or not pc.enabled or pc.evidence or not wanted:
+        return config
+    config = copy.deepcopy(config)
+    config.set("parts.evidence", True)
+    echo("assemblies in the batch: the 3D-move and resize evidence of every photo is computed for their verdicts "
+         "(parts.evidence; a few seconds more per photo)")
+    return config
+
+
 def run_batch(items: list[BatchItem], out_dir: str | Path, config: PixieConfig, refs_path: str | Path | None,
               *, threads: int = 1, use_ray: bool = False, address: str | None = None, workers: int | None = None,
               overlays: bool = True, echo: Callable[[str], None] = print, show_progress: bool = True,
@@ -292,6 +309,7 @@ def run_batch(items: list[BatchItem], out_dir: str | Path, config: PixieConfig, 
     """
 
     t_start = time.perf_counter()
+    config = with_assembly_evidence(config, items, echo)
     out = Path(out_dir)
     (out / "overlays").mkdir(parents=True, exist_ok=True)
     refs_of = {}  # every reference set used -> (its sha256, its mesh's sha256)

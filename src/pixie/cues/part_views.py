@@ -25,8 +25,8 @@ __all__ = ["AssemblyPart", "views_kwargs", "part_scores", "combine_views"]
 
 def views_kwargs(pc: PartsConfig) -> dict:
     """:func:`combine_views`' keywords that ``config.parts`` sets (with ``report_kwargs(pc)[1]``, the judge's)."""
-    return dict(views_move_gain=pc.views_move_gain if pc.moves else float("inf"),
-                views_resize_gain=pc.views_resize_gain if pc.resizes else float("inf"))
+    return dict(views_move_gain=pc.views_move_gain if pc.moves or pc.evidence else float("inf"),
+                views_resize_gain=pc.views_resize_gain if pc.resizes or pc.evidence else float("inf"))
 
 
 def part_scores(parts: list[PartSupport], *, flag_below: float = 0.6, colour_weight: float = 0.0,
@@ -74,11 +74,11 @@ def combine_views(reports: list[list[PartSupport]], *, views_move_gain: float = 
     photos that judge it, flagged when the mean is below ``flag_below`` (``judge_kw``: :func:`judge_parts`'s keywords,
     ``report_kwargs(config.parts)[1]``).
 
-    With the 3D-move / resize evidence in the records (``config.parts.moves`` / ``resizes``), a part whose best
-    resize gains on average (over the photos that judge it, 0 where none was tried) at least ``views_resize_gain``
-    is ``wrong``, else one whose best move gains on average at least ``views_move_gain`` is ``displaced``
-    (``config.parts.views_resize_gain`` / ``views_move_gain``): a brick one stud off or a part of another size keeps
-    most of its contour supported in every photo, and only the moved or resized part's contour tells.
+    With the 3D-move / resize evidence in the records (``config.parts.moves`` / ``resizes`` / ``evidence``), a part
+    whose best resize gains on average (over the photos that judge it, 0 where none was tried) at least
+    ``views_resize_gain`` is ``wrong``, else one whose best move gains on average at least ``views_move_gain`` is
+    ``displaced`` (``config.parts.views_resize_gain`` / ``views_move_gain``): a brick one stud off or a part of another
+    size keeps most of its contour supported in every photo, and only the moved or resized part's contour tells.
 
     One photo's evidence about a part is noisy: it is half hidden, painted like what is behind it, or one of its
     edges falls on clutter. Over photos from other viewpoints the noise averages out and a defect, which is there
