@@ -706,8 +706,10 @@ def test_assembly_evidence_is_computed_without_changing_a_photos_own_verdict(tmp
 
     cfg = PixieConfig.from_preset("default")
     cfg.set("parts.evidence", True)
-    support, judge = report_kwargs(cfg.parts)
-    assert support["moves"] and support["resizes"] and judge["move_gain"] == judge["resize_gain"] == float("inf")
+    support, judge = report_kwargs(cfg.parts)  # the shipped views thresholds: moves judged per assembly, resizes not
+    assert support["moves"] and not support["resizes"] and judge["move_gain"] == judge["resize_gain"] == float("inf")
+    cfg.set("parts.views_resize_gain", 0.3)
+    assert report_kwargs(cfg.parts)[0]["resizes"]
     assert views_kwargs(cfg.parts) == dict(views_move_gain=cfg.parts.views_move_gain,
                                            views_resize_gain=cfg.parts.views_resize_gain)
     base = PixieConfig.from_preset("default")

@@ -293,8 +293,8 @@ def with_assembly_evidence(config: PixieConfig, items: list[BatchItem], echo: Ca
         return config
     config = copy.deepcopy(config)
     config.set("parts.evidence", True)
-    echo("assemblies in the batch: the 3D-move and resize evidence of every photo is computed for their verdicts "
-         "(parts.evidence; a few seconds more per photo)")
+    echo("assemblies in the batch: every photo's parts are also tried moved (and resized, with "
+         "parts.views_resize_gain) for the assemblies' verdicts (parts.evidence; a few seconds more per photo)")
     return config
 
 

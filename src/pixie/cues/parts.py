@@ -122,13 +122,15 @@ class PartSupport:
 
 def report_kwargs(pc: PartsConfig) -> tuple[dict, dict]:
     """The keywords of :func:`part_support` and of :func:`judge_parts` that ``config.parts`` sets (``pc.evidence``:
-    the 3D moves and resizes are tried, but a photo is judged on them only with ``pc.moves`` / ``pc.resizes``)."""
+    the 3D moves / resizes an assembly's verdict uses, ``pc.views_move_gain`` / ``views_resize_gain`` <= 1, are
+    tried, but a photo is judged on them only with ``pc.moves`` / ``pc.resizes``)."""
     support = dict(fit_px=pc.fit_px, shift_frac=pc.shift_frac, min_points=pc.min_points, colour_ab=pc.colour_ab,
                    step_frac=pc.step_frac, detail_px=pc.detail_px, contrast_px=pc.contrast_px,
                    kinds=tuple(PART_KINDS.index(k) for k in pc.kinds),
-                   moves=pc.moves or pc.evidence, min_visible=pc.min_visible, move_below=pc.move_below,
+                   moves=pc.moves or (pc.evidence and pc.views_move_gain <= 1), min_visible=pc.min_visible,
+                   move_below=pc.move_below,
                    move_changed=pc.move_changed, move_px=pc.move_px, move_collide=pc.move_collide,
-                   resizes=pc.resizes or pc.evidence)
+                   resizes=pc.resizes or (pc.evidence and pc.views_resize_gain <= 1))
     judge = dict(flag_below=pc.flag_below, colour_weight=pc.colour_weight, revealed_weight=pc.revealed_weight,
                  shift_weight=pc.shift_weight, supported_above=pc.supported_above, shift_gain=pc.shift_gain,
                  found_shifted=pc.found_shifted, min_points=pc.min_points, min_visible=pc.min_visible,

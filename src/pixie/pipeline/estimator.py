@@ -272,9 +272,9 @@ class PoseEstimator:
         if self._part_renderers is None:
             self._part_renderers = part_renderers(mesh)
             self._part_complements = complement_renderers(mesh, smooth_normals=ren.smooth_normals)
-        if (pc.moves or pc.resizes or pc.evidence) and pc.move_collide and self._part_solids is None:
-            self._part_solids = part_solids(mesh)
         support_kw, judge_kw = report_kwargs(pc)
+        if (support_kw["moves"] or support_kw["resizes"]) and pc.move_collide and self._part_solids is None:
+            self._part_solids = part_solids(mesh)
         if pc.robust and q.box_source == "prior":  # a grown search region, not the object's sides
             align_kw["w_box"] = 0.0
 
