@@ -54,7 +54,11 @@ def assembly_html(assemblies: list[dict]) -> str:
     for a in assemblies:
         sus = [p for p in a["parts"] if p["verdict"] in SUSPECT_VERDICTS]
         what = ("<b>suspect parts:</b> " + ", ".join(
-            f"{html.escape(p['name'])} ({p['verdict']}, mean score {p['score']:.2f} over {p['n_views']} photos)"
+            f"{html.escape(p['name'])} ({p['verdict']}, mean score {p['score']:.2f} over {p['n_views']} photos"
+            + (f"; moved {html.escape(p['move'])}, mean gain {p['move_gain']:.2f}" if p["verdict"] == "displaced"
+               and p.get("move") else "")
+            + (f"; {html.escape(p['size'])}, mean gain {p['size_gain']:.2f}" if p["verdict"] == "wrong"
+               and p.get("size") else "") + ")"
             for p in sus)) if sus else "no suspect part"
         hidden = [p["name"] for p in a["parts"] if p["verdict"] == "not visible"]
         if hidden:

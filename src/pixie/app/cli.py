@@ -409,7 +409,9 @@ def _estimate_batch(args: argparse.Namespace) -> int:
           f"{f' on {s.workers} Ray workers' if args.ray else ''}")
     print(f"results -> {s.results_csv} (BOP), {s.results_jsonl}; overlays -> {s.html}")
     for a in s.assemblies or []:  # suspect first
-        sus = [f"{p['name']} ({p['verdict']})" for p in a["parts"] if p["verdict"] in SUSPECT_VERDICTS]
+        sus = [f"{p['name']} ({p['verdict']}" + (f", {p['move']}" if p["verdict"] == "displaced" and p["move"] else "")
+               + (f", {p['size']}" if p["verdict"] == "wrong" and p["size"] else "") + ")"
+               for p in a["parts"] if p["verdict"] in SUSPECT_VERDICTS]
         print(f"assembly {a['assembly']} ({a['n_photos']} photos judged together): "
               + (f"{len(sus)} suspect: " + ", ".join(sus) if sus else "no suspect part"))
     if s.assemblies:
