@@ -201,74 +201,65 @@ def row_verdicts(r: dict, cfg: PixieConfig, params: tuple, key: str = "parts") -
     return [p.verdict for p in ps]
 
 
-def table(rows: list[dict], cfg: PixieConfig, params, key: str = "parts") -> dict:
-    """Per defect type: recall of the defective part (flagged missing or displaced), the share flagged with the
-    right kind (missing for 'missing', displaced for shifted / rotated), and on correct assemblies the false alarms
-    (flagged parts) per image. 'extra' has no defective part of the CAD model: the share of its images with any
-    flagged part is reported instead. ``params``: one tuple for every row, or a function of the row giving its
-    tuple (the cross-fit: each half judged with what the other half chose)."""
-    of = params if callable(params) else (lambda r: params)
+def _summary(by: dict[str, list[tuple[dict, list[str]]]], unit: str, units: str) -> dict:
+    """Per defect type, from each judged unit's (its row, its parts' verdicts) -- a photo (``unit`` 'image') or an
+    assembly's photos together ('assembly'): recall of the defective part (flagged missing, displaced or wrong), the
+    share flagged with the right kind (missing for 'missing', displaced for shifted / rotated), the share where it is
+    not visible, the other parts flagged per unit; on correct assemblies the false alarms (flagged parts) per unit;
+    for 'extra' (no defective part of the CAD model) the share of units with any flagged part."""
     out: dict[str, dict] = {}
-    by: dict[str, list[dict]] = {}
-    for r in rows:
-        if key not in r:
-            continue
-        by.setdefault(r["defect"] or "none (correct assembly)", []).append(r)
-    for d, rs in sorted(by.items()):
-        vs = [row_verdicts(r, cfg, of(r), key) for r in rs]
+    for d, items in sorted(by.items()):
+        vs = [v for _, v in items]
         if d == "none (correct assembly)":
             fa = [sum(x in FLAG for x in v) for v in vs]
-            out[d] = dict(n=len(rs), false_alarms_per_image=float(np.mean(fa)),
-                          images_with_a_false_alarm=float(np.mean([f > 0 for f in fa])))
+            out[d] = {"n": len(items), f"false_alarms_per_{unit}": float(np.mean(fa)),
+                      f"{units}_with_a_false_alarm": float(np.mean([f > 0 for f in fa]))}
         elif d == "extra":
-            out[d] = dict(n=len(rs), images_flagged=float(np.mean([any(x in FLAG for x in v) for v in vs])))
+            out[d] = {"n": len(items), f"{units}_flagged": float(np.mean([any(x in FLAG for x in v) for v in vs]))}
         else:
-            ver = [v[r["defect_part"]] if r["defect_part"] < len(v) else "not visible" for r, v in zip(rs, vs)]
+            ver = [v[r["defect_part"]] if r["defect_part"] < len(v) else "not visible" for r, v in items]
             right = {"missing": ("missing",), "shifted": ("displaced",), "rotated": ("displaced",),
                      "wrong": ("missing", "displaced", "wrong")}[d]
-            other = [sum(x in FLAG for j, x in enumerate(v) if j != r["defect_part"]) for r, v in zip(rs, vs)]
-            out[d] = dict(n=len(rs), recall=float(np.mean([x in FLAG for x in ver])),
-                          recall_visible=float(np.mean([x in FLAG for x in ver if x != "not visible"]))
-                          if any(x != "not visible" for x in ver) else None,
-                          right_kind=float(np.mean([x in right for x in ver])),
-                          not_visible=float(np.mean([x == "not visible" for x in ver])),
-                          other_parts_flagged_per_image=float(np.mean(other)))
+            other = [sum(x in FLAG for j, x in enumerate(v) if j != r["defect_part"]) for r, v in items]
+            out[d] = {"n": len(items), "recall": float(np.mean([x in FLAG for x in ver])),
+                      "recall_visible": float(np.mean([x in FLAG for x in ver if x != "not visible"]))
+                      if any(x != "not visible" for x in ver) else None,
+                      "right_kind": float(np.mean([x in right for x in ver])),
+                      "not_visible": float(np.mean([x == "not visible" for x in ver])),
+                      f"other_parts_flagged_per_{unit}": float(np.mean(other))}
     return out
+
+
+def table(rows: list[dict], cfg: PixieConfig, params, key: str = "parts") -> dict:
+    """Per defect type, per photo (:func:`_summary`): recall of the defective part, the right kind, and on correct
+    assemblies the false alarms per image. ``params``: one tuple for every row, or a function of the row giving its
+    tuple (the cross-fit: each half judged with what the other half chose)."""
+    of = params if callable(params) else (lambda r: params)
+    by: dict[str, list[tuple[dict, list[str]]]] = {}
+    for r in rows:
+        if key in r:
+            by.setdefault(r["defect"] or "none (correct assembly)", []).append((r, row_verdicts(r, cfg, of(r), key)))
+    return _summary(by, "image", "images")
 
 
 def assembly_table(rows: list[dict], cfg: PixieConfig, params, key: str = "parts", views: dict | None = None) -> dict:
     """:func:`table` per assembly instead of per photo: the photos of one scene (one assembly in one colour, seen
-    from several viewpoints) judged together (:func:`pixie.cues.parts.combine_views` over their part records judged
-    with ``params``). Recall of the defective part per defect type over the scenes; false alarms = flagged parts per
-    correct scene. ``views``: :func:`pixie.cues.part_views.combine_views`' thresholds on the mean 3D-move / resize
-    gains (``views_kwargs(cfg.parts)`` when None)."""
+    from several viewpoints) judged together (:func:`pixie.cues.part_views.combine_views` over their part records
+    judged with ``params``); false alarms per correct assembly. ``views``: ``combine_views``' thresholds on the mean
+    3D-move / resize gains (``views_kwargs(cfg.parts)`` when None)."""
     of = params if callable(params) else (lambda r: params)
     views = views_kwargs(cfg.parts) if views is None else views
     scenes: dict[int, list[dict]] = {}
     for r in rows:
         if key in r:
             scenes.setdefault(r["scene_id"], []).append(r)
-    by: dict[str, list[tuple[dict, list]]] = {}
-    for sid, rs in sorted(scenes.items()):
+    by: dict[str, list[tuple[dict, list[str]]]] = {}
+    for _, rs in sorted(scenes.items()):
         prm = of(rs[0])
         _, judge, _ = _kw(cfg, *prm[:5], resize_gain=prm[6] if len(prm) > 6 else float("inf"))
         combined = combine_views([_judged(r[key], cfg, prm) for r in rs], **views, **judge)
-        by.setdefault(rs[0]["defect"] or "none (correct assembly)", []).append((rs[0], combined))
-    out: dict[str, dict] = {}
-    for d, items in sorted(by.items()):
-        vs = [[p.verdict for p in c] for _, c in items]
-        if d == "none (correct assembly)":
-            fa = [sum(x in FLAG for x in v) for v in vs]
-            out[d] = dict(n=len(items),
-                          false_alarms_per_assembly=float(np.mean(fa)),
-                          assemblies_with_a_false_alarm=float(np.mean([f > 0 for f in fa])))
-        elif d == "extra":
-            out[d] = dict(n=len(items), assemblies_flagged=float(np.mean([any(x in FLAG for x in v) for v in vs])))
-        else:
-            ver = [v[r["defect_part"]] if r["defect_part"] < len(v) else "not visible" for (r, _), v in zip(items, vs)]
-            out[d] = dict(n=len(items), recall=float(np.mean([x in FLAG for x in ver])),
-                          not_visible=float(np.mean([x == "not visible" for x in ver])))
-    return out
+        by.setdefault(rs[0]["defect"] or "none (correct assembly)", []).append((rs[0], [p.verdict for p in combined]))
+    return _summary(by, "assembly", "assemblies")
 
 
 def _markdown(t: dict, header: list[str], keys: list[str]) -> str:
@@ -502,7 +493,7 @@ def main(argv=None) -> int:
     for k, v in res["ablations_report_half"].items():
         print(f"\nablation, report half: {k}, chosen on the fitting half by the same rule: {v['params']}\n{fmt(v['table'])}")
     for k, v in res["by_assembly"].items():
-        print(f"\nper assembly (its photos judged together, pixie.cues.parts.combine_views), {k}\n{fmt_assembly(v)}")
+        print(f"\nper assembly (its photos judged together, pixie.cues.part_views.combine_views), {k}\n{fmt_assembly(v)}")
     print("\n", json.dumps(res["add"]))
     args.out.write_text(json.dumps({**res, "rows": rows}, indent=1, default=float))
     print(f"wrote {args.out}")

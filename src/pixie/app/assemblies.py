@@ -19,12 +19,14 @@ __all__ = ["ASSEMBLY_NOTE", "assembly_reports", "assembly_html"]
 
 ASSEMBLY_NOTE = ("photos with the same 'assembly' judged together: each part's score (pixie.cues.parts.part_score, "
                  "as in one photo's report) averaged over the photos that see it (visible enough to judge), flagged "
-                 "below config.parts.flag_below; n_views = those photos, view_verdicts = its verdict in each photo")
+                 "below config.parts.flag_below; move_gain / size_gain = its best 3D move's / resize's gain averaged "
+                 "over them (0 where none was tried): 'displaced' from config.parts.views_move_gain, 'wrong' from "
+                 "views_resize_gain; n_views = those photos, view_verdicts = its verdict in each photo")
 
 
 def assembly_reports(records: list[dict], config: PixieConfig) -> list[dict]:
     """One combined part report per assembly: the records (batch results) with the same ``assembly`` and object
-    whose estimate has a part report, judged together (:func:`pixie.cues.parts.combine_views` with
+    whose estimate has a part report, judged together (:func:`pixie.cues.part_views.combine_views` with
     ``config.parts``' thresholds); failed estimates are left out (their pose, and so their evidence, is not
     trusted). Assemblies with suspect parts come first."""
     groups: dict[tuple, list[dict]] = {}

@@ -15,7 +15,7 @@ JSON manifests are a list of objects with the same keys (``K`` and ``bbox`` may 
 
 **One assembly in several photos** (``pixie inspect --batch``): rows with the same ``assembly`` column (any name)
 show one physical assembly from different viewpoints; its part report is judged over all of them
-(:func:`pixie.cues.parts.combine_views`: each part's score averaged over the photos that see it), which tells a
+(:func:`pixie.cues.part_views.combine_views`: each part's score averaged over the photos that see it), which tells a
 defect, present in every photo, from one photo's noise. A folder batch with ``--one-assembly`` is one assembly.
 
 **Several objects per photo:** a row per (photo, object, box or mask), with the object named per row by a ``refs``

@@ -96,14 +96,14 @@ def combine_views(reports: list[list[PartSupport]], *, views_move_gain: float = 
     scores = [part_scores(r, **judge_kw) for r in reports]
     out = []
     for k in range(n):
-        mine = [(s[k], r[k].verdict) for s, r in zip(scores, reports) if s[k] is not None]
+        judged = [(s[k], r[k]) for s, r in zip(scores, reports) if s[k] is not None]  # the photos that judge it
         views = [r[k].verdict for r in reports]
-        if not mine:
+        if not judged:
             out.append(AssemblyPart(index=k, name=reports[0][k].name, verdict="not visible", score=float("nan"),
                                     n_views=0, view_verdicts=views))
             continue
-        mean = float(np.mean([s for s, _ in mine]))
-        seen = [r[k] for s, r in zip(scores, reports) if s[k] is not None]
+        mean = float(np.mean([s for s, _ in judged]))
+        seen = [p for _, p in judged]
         move_gain = float(np.mean([p.move_gain if p.move else 0.0 for p in seen]))
         size_gain = float(np.mean([p.size_gain if p.size else 0.0 for p in seen]))
         best_move = max(seen, key=lambda p: p.move_gain if p.move else -np.inf)
@@ -114,9 +114,10 @@ def combine_views(reports: list[list[PartSupport]], *, views_move_gain: float = 
         elif move_gain >= views_move_gain:
             verdict = "displaced"
         elif mean < flag_below:
-            kinds = [v for _, v in sorted(mine) if v in SUSPECT_VERDICTS]
+            by_score = [p.verdict for _, p in sorted(judged, key=lambda sp: (sp[0], sp[1].verdict))]
+            kinds = [v for v in by_score if v in SUSPECT_VERDICTS]
             verdict = max(kinds, key=lambda v: (kinds.count(v), -kinds.index(v))) if kinds else "missing"
-        out.append(AssemblyPart(index=k, name=reports[0][k].name, verdict=verdict, score=mean, n_views=len(mine),
+        out.append(AssemblyPart(index=k, name=reports[0][k].name, verdict=verdict, score=mean, n_views=len(judged),
                                 view_verdicts=views, move_gain=move_gain, move=best_move.move,
                                 size_gain=size_gain, size=best_size.size))
     return out
