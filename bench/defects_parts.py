@@ -180,11 +180,32 @@ def analyse(data: Path, ests: dict, cfg: PixieConfig, echo=print, use_mask: bool
     return rows
 
 
+def resize_factor(name: str) -> float:
+    """The length factor of a resize named by :func:`pixie.cues.part_moves.part_resizes` ('1.5x as long ...')."""
+    return float(name.split("x as long")[0])
+
+
+def restricted(p: PartSupport, factors) -> PartSupport:
+    """``p`` as if only the resizes by ``factors`` had been tried (records that keep every resize's gain, computed
+    with more factors than a config tries): its best resize among those, or none. Records without per-resize gains
+    are left as they are."""
+    if not p.size_gains:
+        return p
+    keep = {n: g for n, g in p.size_gains.items()
+            if any(np.isclose(resize_factor(n), float(f"{f:.2g}")) for f in factors)}
+    best = max(keep, key=keep.get) if keep else ""
+    if best != p.size:  # the support of another resize's own pixels is not kept
+        p.size_support = 0.0
+    p.size_gains, p.size, p.size_gain = keep, best, keep.get(best, 0.0)
+    return p
+
+
 def _judged(parts: list[dict], cfg: PixieConfig, params: tuple) -> list[PartSupport]:
     """Stored part records judged under other (flag_below, colour_weight, revealed_weight, shift_weight[, move_gain[,
-    alt_gap[, resize_gain]]]) (:func:`judge_parts` on the records; a missing resize_gain: none, as without resizes)."""
+    alt_gap[, resize_gain]]]) (:func:`judge_parts` on the records; a missing resize_gain: none, as without resizes),
+    their resizes restricted to ``cfg.parts.resize_factors`` (:func:`restricted`)."""
     _, judge, _ = _kw(cfg, *params[:5], resize_gain=params[6] if len(params) > 6 else float("inf"))
-    return judge_parts([PartSupport.from_dict(p) for p in parts], **judge)
+    return judge_parts([restricted(PartSupport.from_dict(p), cfg.parts.resize_factors) for p in parts], **judge)
 
 
 def row_verdicts(r: dict, cfg: PixieConfig, params: tuple, key: str = "parts") -> list[str]:
@@ -403,6 +424,8 @@ def main(argv=None) -> int:
                     "whatever config key it was cached under (estimates of an earlier commit with the same poses)")
     ap.add_argument("--max-fa", type=float, default=0.1, help="the rule's false alarms per correct assembly on the "
                     "half it chooses on (0.1: the bar itself; 0.05: a margin for the 24 correct assemblies of a half)")
+    ap.add_argument("--types", default=None, metavar="T[,T]", help="compute the rows of these defect types' photos only "
+                    "(missing, shifted, rotated, wrong, extra; none: the correct assemblies)")
     args = ap.parse_args(argv)
     cfg = PixieConfig.from_preset(args.preset).apply_overrides(args.set)
     if args.parts_dir is None:
@@ -416,6 +439,12 @@ def main(argv=None) -> int:
         for j in args.estimates:
             ests.update(target_estimates(j, args.data, cfg, by_target=args.by_target))
         print(f"{len(ests)} target-model estimates")
+        if args.types:  # only the photos of these defect types ('none': the correct assemblies)
+            want = set(args.types.split(","))
+            kind = {v["scene_id"]: (v.get("defect") or {}).get("type") or "none"
+                    for v in json.loads((args.data / "variants.json").read_text())}
+            ests = {key: e for key, e in ests.items() if kind[key[0]] in want}
+            print(f"{len(ests)} of them of the types {sorted(want)}")
         if args.shard:
             k, n = (int(x) for x in args.shard.split("/"))
             ests = {key: ests[key] for key in sorted(ests)[k::n]}

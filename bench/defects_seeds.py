@@ -121,13 +121,15 @@ def main(argv=None) -> int:
     ap.add_argument("--rows", action="append", required=True, metavar="SEED=FILE[,FILE]",
                     help="a seed's rows: bench/defects_parts.py --out or --shard outputs (their 'rows')")
     ap.add_argument("--preset", default="default")
+    ap.add_argument("--set", action="append", default=[], metavar="SECTION.KEY=VALUE",
+                    help="config overrides (e.g. parts.views_resize_gain=0.2, parts.resize_factors=0.5,0.75,1.5,2,3)")
     ap.add_argument("--max-fa", type=float, default=0.05, help="the rule's false alarms per correct assembly")
     ap.add_argument("--variants", default=",".join(VARIANTS))
     ap.add_argument("--configured-only", action="store_true", help="only the shipped thresholds on every seed (no "
                     "fitting: seconds)")
     ap.add_argument("--out", type=Path, required=True)
     args = ap.parse_args(argv)
-    cfg = PixieConfig.from_preset(args.preset)
+    cfg = PixieConfig.from_preset(args.preset).apply_overrides(args.set)
     variants = tuple(v for v in args.variants.split(",") if v)
     if not set(variants) <= set(VARIANTS):
         ap.error(f"--variants: choose from {', '.join(VARIANTS)}")
@@ -137,7 +139,7 @@ def main(argv=None) -> int:
         rows[seed] = [r for f in files.split(",") for r in json.loads(Path(f).read_text())["rows"]]
     if len(rows) < 2 and not args.configured_only:
         ap.error("give the rows of at least two seeds")
-    res: dict = {"max_fa": args.max_fa, "preset": args.preset, "n_rows": {s: len(r) for s, r in rows.items()},
+    res: dict = {"max_fa": args.max_fa, "preset": args.preset, "set": args.set, "n_rows": {s: len(r) for s, r in rows.items()},
                  "configured": {"params": _json(configured(cfg))}, "fits": {}, "pairs": []}
     # the shipped thresholds, no fitting; per assembly as a batch with assemblies judges them (parts.evidence on:
     # the mean 3D-move / resize gains count where the rows hold that evidence)

@@ -427,12 +427,17 @@ def test_part_support_record_round_trip():
     p = PartSupport(index=2, name="brick_2", support=0.4321, relative=0.61, shifted=0.7, shift_px=3.25, visible=0.8,
                     n_points=57, colour=1.3, exclusive=0.2, n_exclusive=11, revealed=0.35, n_revealed=9,
                     exclusive_shifted=0.5, move_gain=0.42, move="+y 7.9 mm", size_gain=0.31,
-                    size="1.5x as long along z, low end kept", size_support=0.8, verdict="displaced")
+                    size="1.5x as long along z, low end kept", size_support=0.8, verdict="displaced",
+                    move_gains={"+y 7.9 mm": 0.42, "-x 4.0 mm": -0.2},
+                    size_gains={"1.5x as long along z, low end kept": 0.31, "0.5x as long along y, high end kept": 0.1})
     d = p.as_dict()
     assert PartSupport.from_dict(d).as_dict() == d
-    old = {k: v for k, v in d.items() if k not in ("colour", "exclusive_support", "n_exclusive")}  # an older record
+    assert PartSupport.from_dict(d).size_gains == p.size_gains
+    old = {k: v for k, v in d.items() if k not in ("colour", "exclusive_support", "n_exclusive", "move_gains",
+                                                   "size_gains")}  # an older record
     q = PartSupport.from_dict(old)
     assert q.colour == 1.0 and q.exclusive == 0.0 and q.n_exclusive == 0 and q.support == d["support"]
+    assert q.move_gains == {} and q.size_gains == {}
 
 
 def test_only_parts_hidden_at_the_chosen_pose_take_the_runner_ups_verdict_and_the_record_says_so():
@@ -505,18 +510,20 @@ def test_the_runner_up_rule_is_configured_and_checked():
 # ------------------------------------------------------------------------------------------ resizes (a wrong part)
 
 
-def test_part_resizes_scale_one_model_axis_and_keep_one_end(lego):
-    """Each resize scales the part along x, y or z by its factor, keeps the low or the high end of the part's box
-    where it is, leaves the other two axes alone, and is not rigid (this brick is thick enough along every axis for
-    all of them to be tried); the moves stay rigid."""
+@pytest.mark.parametrize("factors", [None, (0.5, 0.75)], ids=["default", "shorter"])
+def test_part_resizes_scale_one_model_axis_and_keep_one_end(lego, factors):
+    """Each resize scales the part along x, y or z by its factor (longer by default, or the given ones), keeps the
+    low or the high end of the part's box where it is, leaves the other two axes alone, and is not rigid (this brick
+    is thick enough along every axis for all of them to be tried); the moves stay rigid."""
     from pixie.cues.part_moves import RESIZE_FACTORS, is_rigid, part_resizes
 
     mesh = lego["mesh"]
     k = 1
     V, lo, hi = _part_box(mesh, k)
-    sizes = part_resizes(mesh, k)
+    assert (hi - lo).min() > 4.0  # a 0.75x resize moves the free end by > 1 mm (part_resizes' min_mm)
+    sizes = part_resizes(mesh, k) if factors is None else part_resizes(mesh, k, factors=factors)
     names = [n for n, _ in sizes]
-    assert len(names) == len(set(names)) and len(sizes) == 2 * 3 * len(RESIZE_FACTORS)  # every axis > 3 mm thick
+    assert len(names) == len(set(names)) and len(sizes) == 2 * 3 * len(factors or RESIZE_FACTORS)
     for name, A in sizes:
         a = "xyz".index(name.split("along ")[1][0])
         s = float(name.split("x as long")[0])
@@ -572,6 +579,8 @@ def test_a_longer_bolt_is_reported_wrong_with_its_resize_and_a_complete_assembly
         p = report(mech["bad"], T, seed)[mech["bolt"]]
         n_wrong += p.verdict == "wrong"
         n_how += p.verdict == "wrong" and "along z, low end" in p.size and float(p.size.split("x")[0]) > 1
+        if p.size:  # every resize judged is kept by name, the best one among them
+            assert p.size_gains[p.size] == p.size_gain == max(p.size_gains.values()) and len(p.size_gains) > 1
     assert n_wrong >= 7 and n_how >= 7 and n_clean >= 10, (n_wrong, n_how, n_clean)
 
 
@@ -653,6 +662,35 @@ def test_combine_views_averages_each_parts_score_over_the_photos_that_see_it():
     assert combine_views(reports, views_resize_gain=0.2, **JUDGE)[0].verdict == "wrong"
 
 
+def test_one_resize_over_all_photos_is_not_each_photos_best_resize():
+    """``views_resize_same``: the mean gain of one resize over the photos, not the mean of each photo's best. A part
+    whose photos each favour a different resize (chance fits) is present; one whose photos agree on a resize is
+    wrong, named by that resize; records without per-resize gains count with their best under its name."""
+    from pixie.cues.part_views import combine_views, mean_gain
+
+    A, B, C = "2x as long along x, low end kept", "1.5x as long along y, high end kept", "0.5x as long along z, low end kept"
+    chance = [{A: 0.45, B: 0.0}, {B: 0.45, A: -0.1}, {C: 0.45}]
+    agree = [{A: 0.3}, {A: 0.35, C: 0.1}, {A: 0.25, B: 0.4}]
+    reports = []
+    for g0, g1 in zip(chance, agree):
+        r = [_rec(0, 0.8), _rec(1, 0.75), _rec(2, 0.8), _rec(3, 0.85), _rec(4, 0.7)]
+        for p, g in ((r[0], g0), (r[1], g1)):
+            p.size_gains = g
+            p.size = max(g, key=g.get)
+            p.size_gain = g[p.size]
+        reports.append(judge_parts(r, **JUDGE))
+    best = combine_views(reports, views_resize_gain=0.25, **JUDGE)
+    same = combine_views(reports, views_resize_gain=0.25, views_resize_same=True, **JUDGE)
+    assert [p.verdict for p in best][:3] == ["wrong", "wrong", "present"]
+    assert [p.verdict for p in same][:3] == ["present", "wrong", "present"]
+    assert same[0].size_gain == pytest.approx(0.15) and same[1].size_gain == pytest.approx(0.3) and same[1].size == A
+    assert best[0].size_gain == pytest.approx(0.45) and best[1].size_gain == pytest.approx((0.3 + 0.35 + 0.4) / 3)
+    for p in (r[1] for r in reports):  # older records: the best resize alone (A, A, B)
+        p.size_gains = {}
+    assert mean_gain([r[1] for r in reports], "size", same_hypothesis=True) == (pytest.approx(0.65 / 3), A)
+    assert mean_gain([r[2] for r in reports], "size", same_hypothesis=True) == (0.0, "")
+
+
 def test_a_removed_part_is_reported_missing_over_three_photos_and_the_complete_assembly_has_none(lego):
     """The part report of three photos of one assembly (three viewpoints, the true pose) judged together: the
     removed brick is missing, no other part is flagged, and the complete assembly flags none."""
@@ -713,10 +751,11 @@ def test_assembly_evidence_is_computed_without_changing_a_photos_own_verdict(tmp
     cfg.set("parts.views_resize_gain", 0.3)
     assert report_kwargs(cfg.parts)[0]["resizes"]
     assert views_kwargs(cfg.parts) == dict(views_move_gain=cfg.parts.views_move_gain,
-                                           views_resize_gain=cfg.parts.views_resize_gain)
+                                           views_resize_gain=cfg.parts.views_resize_gain, views_resize_same=False)
     base = PixieConfig.from_preset("default")
     assert not base.parts.evidence and views_kwargs(base.parts) == dict(views_move_gain=float("inf"),
-                                                                        views_resize_gain=float("inf"))
+                                                                        views_resize_gain=float("inf"),
+                                                                        views_resize_same=False)
     items = [BatchItem(tmp_path / "a.png", K), BatchItem(tmp_path / "b.png", K, assembly="unit 7")]
     base.set("parts.views_move_gain", 0.3)
     said: list[str] = []

@@ -505,6 +505,10 @@ class PartsConfig(_Section):
     # parts.resizes=true turns it on
     resizes: bool = False
     resize_gain: float = 0.25
+    # the lengths a resize tries, x the CAD part's (along one model axis, one end kept). Shorter ones (0.5, 0.75) found
+    # no wrong part more per assembly on the defects benchmark's seeds 0-3 (they are tried only on parts supported
+    # less than move_below x the median, and a part a little too short keeps most of its contour; session 38)
+    resize_factors: list[float] = field(default_factory=lambda: [1.5, 2.0, 3.0])
     # one assembly in several photos (pixie.cues.part_views.combine_views; a batch's 'assembly' groups): a part whose
     # best 3D move (resize) gains on average over its photos at least this is 'displaced' ('wrong'); above 1: never
     # (a gain is at most 1). Chosen on the defects benchmark's seed 0 (bench/defects_seeds.py 'views': the best mean
@@ -513,6 +517,10 @@ class PartsConfig(_Section):
     # correct assembly (bench/RESULTS.md, session 37)
     views_move_gain: float = 0.4
     views_resize_gain: float = 2.0
+    # ... the gain of one resize averaged over all the photos (true), or of each photo's best resize (false). Neither
+    # ships views_resize_gain: fitted on seeds 0-2 (true, 0.1: wrong parts per assembly 0.57 -> 0.74 there, no false
+    # alarm added), judged on seed 3 (new assemblies): wrong 0.73 -> 0.73, false alarms 0.083 -> 0.25 (session 38)
+    views_resize_same: bool = False
     # compute that evidence for every photo even with parts.moves / parts.resizes off; no single photo is judged on it
     # (a batch with 'assembly' groups turns it on itself when views_move_gain / views_resize_gain can flag)
     evidence: bool = False

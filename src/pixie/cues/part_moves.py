@@ -13,7 +13,7 @@ differs from the CAD one's and from the part's absence, the photo's edges say wh
 
 from __future__ import annotations
 
-from dataclasses import dataclass
+from dataclasses import dataclass, field
 
 import cv2
 import numpy as np
@@ -260,6 +260,7 @@ class MoveFit:
     support: float  # the support of the moved assembly's own contour pixels (where it differs from the CAD one)
     contour: Contour  # the moved assembly's contour
     changed: np.ndarray  # (H, W) bool: where the moved and the CAD assembly's contours differ
+    gains: dict[str, float] = field(default_factory=dict)  # every judged move's gain by name (the best one's included)
 
 
 ROI_MARGIN = 12  # px around a part's reach: more than the edge filters' (8) and the near maps' (1) reach
@@ -344,6 +345,7 @@ def move_evidence(pe: PhotoEdges, T: np.ndarray, k: int, complement: tuple[Rende
     if len(cad.xy) < min_points:
         return None
     best: MoveFit | None = None
+    gains: dict[str, float] = {}
     for name, M in moves:
         if np.max(np.linalg.norm(project(pe.K, transform_points(T @ M, V)) - uv0, axis=1)) < min_px:
             continue
@@ -352,6 +354,7 @@ def move_evidence(pe: PhotoEdges, T: np.ndarray, k: int, complement: tuple[Rende
         if g0 is None or ga is None:  # the move changes (next to) nothing in view
             continue
         gain = min(g0, ga)
+        gains[name] = gain
         if best is None or gain > best.gain:
             own = ~explained(c.xy, c.ori, cad.near)
             changed = np.zeros(shape, bool)
@@ -359,6 +362,8 @@ def move_evidence(pe: PhotoEdges, T: np.ndarray, k: int, complement: tuple[Rende
                 changed[_bin_pixel(xy, np.zeros(len(xy)), shape, 1)[1:]] = True
             best = MoveFit(gain=gain, name=name, M=M, support=float(c.hit[own].mean()) if own.any() else 0.0,
                            contour=c, changed=changed)
+    if best is not None:
+        best.gains = gains
     return best
 
 

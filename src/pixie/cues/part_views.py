@@ -20,13 +20,14 @@ from pixie.config import PartsConfig
 from pixie.cues.parts import PartSupport, part_score, photo_medians
 from pixie.pose.results import SUSPECT_VERDICTS
 
-__all__ = ["AssemblyPart", "views_kwargs", "part_scores", "combine_views"]
+__all__ = ["AssemblyPart", "views_kwargs", "part_scores", "mean_gain", "combine_views"]
 
 
 def views_kwargs(pc: PartsConfig) -> dict:
     """:func:`combine_views`' keywords that ``config.parts`` sets (with ``report_kwargs(pc)[1]``, the judge's)."""
     return dict(views_move_gain=pc.views_move_gain if pc.moves or pc.evidence else float("inf"),
-                views_resize_gain=pc.views_resize_gain if pc.resizes or pc.evidence else float("inf"))
+                views_resize_gain=pc.views_resize_gain if pc.resizes or pc.evidence else float("inf"),
+                views_resize_same=pc.views_resize_same)
 
 
 def part_scores(parts: list[PartSupport], *, flag_below: float = 0.6, colour_weight: float = 0.0,
@@ -68,8 +69,33 @@ class AssemblyPart:
                 "size_gain": round(self.size_gain, 4), "size": self.size}
 
 
+def mean_gain(seen: list[PartSupport], what: str, same_hypothesis: bool = False) -> tuple[float, str]:
+    """One part's 3D-move (``what`` 'move') or resize ('size') evidence over the photos that judge it (``seen``): the
+    mean gain and the move in words.
+
+    ``same_hypothesis`` False: each photo's best move, averaged (0 where none was tried); the move named is that of
+    the photo where it gained most. True: each move's own gain averaged over the photos (0 in a photo where it was
+    not judged: it changed nothing in view), and the best such mean: one physical change that every photo must
+    support, where the best of each photo may be a different change (photos whose records keep no per-move gains
+    count with their best move under its name).
+    """
+    best = [getattr(p, f"{what}_gain") if getattr(p, what) else 0.0 for p in seen]
+    if not same_hypothesis:
+        top = max(seen, key=lambda p: getattr(p, f"{what}_gain") if getattr(p, what) else -np.inf)
+        return float(np.mean(best)), getattr(top, what)
+    per = [getattr(p, f"{what}_gains") or ({getattr(p, what): getattr(p, f"{what}_gain")} if getattr(p, what) else {})
+           for p in seen]
+    names = sorted({n for g in per for n in g})
+    if not names:
+        return 0.0, ""
+    means = [float(np.mean([g.get(n, 0.0) for g in per])) for n in names]
+    i = int(np.argmax(means))
+    return means[i], names[i]
+
+
 def combine_views(reports: list[list[PartSupport]], *, views_move_gain: float = float("inf"),
-                  views_resize_gain: float = float("inf"), **judge_kw) -> list[AssemblyPart]:
+                  views_resize_gain: float = float("inf"), views_resize_same: bool = False,
+                  **judge_kw) -> list[AssemblyPart]:
     """The part report of one assembly seen in several photos: each part's :func:`part_scores` averaged over the
     photos that judge it, flagged when the mean is below ``flag_below`` (``judge_kw``: :func:`judge_parts`'s keywords,
     ``report_kwargs(config.parts)[1]``).
@@ -104,10 +130,8 @@ def combine_views(reports: list[list[PartSupport]], *, views_move_gain: float = 
             continue
         mean = float(np.mean([s for s, _ in judged]))
         seen = [p for _, p in judged]
-        move_gain = float(np.mean([p.move_gain if p.move else 0.0 for p in seen]))
-        size_gain = float(np.mean([p.size_gain if p.size else 0.0 for p in seen]))
-        best_move = max(seen, key=lambda p: p.move_gain if p.move else -np.inf)
-        best_size = max(seen, key=lambda p: p.size_gain if p.size else -np.inf)
+        move_gain, move = mean_gain(seen, "move", same_hypothesis=False)
+        size_gain, size = mean_gain(seen, "size", same_hypothesis=views_resize_same)
         verdict = "present"
         if size_gain >= views_resize_gain:
             verdict = "wrong"
@@ -118,6 +142,6 @@ def combine_views(reports: list[list[PartSupport]], *, views_move_gain: float = 
             kinds = [v for v in by_score if v in SUSPECT_VERDICTS]
             verdict = max(kinds, key=lambda v: (kinds.count(v), -kinds.index(v))) if kinds else "missing"
         out.append(AssemblyPart(index=k, name=reports[0][k].name, verdict=verdict, score=mean, n_views=len(judged),
-                                view_verdicts=views, move_gain=move_gain, move=best_move.move,
-                                size_gain=size_gain, size=best_size.size))
+                                view_verdicts=views, move_gain=move_gain, move=move,
+                                size_gain=size_gain, size=size))
     return out

@@ -25,14 +25,13 @@ Per part (:class:`PartSupport`):
 - ``move`` / ``move_gain`` (with ``moves``, ``config.parts.moves``, off by default): the 3D move of a less supported
   part (shifted along / turned about the model's axes) that the photo supports best, and by how much
   (:mod:`pixie.cues.part_moves`); a part whose move gains ``move_gain`` is ``displaced``, with the move in words.
-- ``size`` / ``size_gain`` (with ``resizes``, ``config.parts.resizes``, off by default): the same for the part made
-  longer or shorter along one of the model's axes, one end kept (:func:`pixie.cues.part_moves.part_resizes`); a
-  part whose resize gains ``resize_gain`` is ``wrong`` (another part of its family: a longer bolt, a 2x6 brick).
+- ``size`` / ``size_gain`` (with ``resizes``, off by default): the same for the part made longer or shorter along a
+  model axis, one end kept (:func:`pixie.cues.part_moves.part_resizes`); a part whose resize gains ``resize_gain`` is
+  ``wrong`` (another part of its family: a longer bolt, a 2x6 brick). ``move_gains`` / ``size_gains``: every move's.
 
-:func:`judge_parts` turns these into verdicts: ``not visible`` (too little of it to judge), ``missing``
-(its contour is unsupported and no shift finds it), ``displaced`` (unsupported where it should be, fully
-supported nearby), ``wrong`` (better supported as another size), ``present``. Thresholds are ``config.parts`` (calibrated on the defects benchmark,
-``bench/defects_parts.py``).
+:func:`judge_parts` turns these into verdicts: ``not visible`` (too little of it to judge), ``missing`` (its contour
+is unsupported and no shift finds it), ``displaced`` (unsupported where it should be, fully supported nearby),
+``wrong`` (better supported as another size), ``present``. Thresholds: ``config.parts`` (``bench/defects_parts.py``).
 
 >>> parts = part_support(renderer, mesh.face_parts, mesh.part_names, pe, T)
 >>> parts = judge_parts(parts, **report_kwargs(config.parts)[1])
@@ -52,7 +51,7 @@ from pixie.geometry.camera import rotation_angle_deg
 from pixie.geometry.collide import PartSolids, collides, part_solids
 from pixie.geometry.mesh import Mesh, from_arrays
 from pixie.cues.part_moves import (MoveFit, explain_away, explained, move_evidence, near_maps, part_contours,
-                                   part_moves, part_resizes)
+                                   part_moves, part_resizes, RESIZE_FACTORS)
 from pixie.geometry.render import Renderer
 from pixie.pose.results import SUSPECT_VERDICTS
 
@@ -89,6 +88,8 @@ class PartSupport:
     size_gain: float = 0.0  # the best resize's support gain (part_resizes, move_evidence): a part of the wrong size
     size: str = ""  # that resize, in words ('1.5x as long along z, low end kept'); '' when none was tried
     size_support: float = 0.0  # the support of the resized part's own contour pixels at that resize
+    move_gains: dict[str, float] = field(default_factory=dict)  # every judged move's gain by name (combine_views)
+    size_gains: dict[str, float] = field(default_factory=dict)  # every judged resize's gain by name
     verdict: str = ""
     judged_at: str = ""  # 'runner-up': hidden at the chosen pose, judged at the runner-up pose (config.parts.alt_gap)
     uv: np.ndarray = field(default_factory=lambda: np.zeros((0, 2)), repr=False)  # its contour points, photo px
@@ -105,7 +106,9 @@ class PartSupport:
                 "exclusive_shifted_support": round(self.exclusive_shifted, 4),
                 "move_gain": round(self.move_gain, 4), "move": self.move, "move_support": round(self.move_support, 4),
                 "move_explained_by": self.move_explained_by, "size_gain": round(self.size_gain, 4), "size": self.size,
-                "size_support": round(self.size_support, 4), "judged_at": self.judged_at}
+                "size_support": round(self.size_support, 4), "judged_at": self.judged_at,
+                "move_gains": {k: round(v, 4) for k, v in self.move_gains.items()},
+                "size_gains": {k: round(v, 4) for k, v in self.size_gains.items()}}
 
     @classmethod
     def from_dict(cls, d: dict) -> "PartSupport":
@@ -117,7 +120,8 @@ class PartSupport:
                    n_revealed=d.get("n_revealed", 0), exclusive_shifted=d.get("exclusive_shifted_support", 0.0),
                    move_gain=d.get("move_gain", 0.0), move=d.get("move", ""), move_support=d.get("move_support", 0.0),
                    move_explained_by=d.get("move_explained_by", -1), size_gain=d.get("size_gain", 0.0),
-                   size=d.get("size", ""), size_support=d.get("size_support", 0.0), judged_at=d.get("judged_at", ""))
+                   size=d.get("size", ""), size_support=d.get("size_support", 0.0), judged_at=d.get("judged_at", ""),
+                   move_gains=dict(d.get("move_gains", {})), size_gains=dict(d.get("size_gains", {})))
 
 
 def report_kwargs(pc: PartsConfig) -> tuple[dict, dict]:
@@ -128,9 +132,9 @@ def report_kwargs(pc: PartsConfig) -> tuple[dict, dict]:
                    step_frac=pc.step_frac, detail_px=pc.detail_px, contrast_px=pc.contrast_px,
                    kinds=tuple(PART_KINDS.index(k) for k in pc.kinds),
                    moves=pc.moves or (pc.evidence and pc.views_move_gain <= 1), min_visible=pc.min_visible,
-                   move_below=pc.move_below,
-                   move_changed=pc.move_changed, move_px=pc.move_px, move_collide=pc.move_collide,
-                   resizes=pc.resizes or (pc.evidence and pc.views_resize_gain <= 1))
+                   move_below=pc.move_below, move_changed=pc.move_changed, move_px=pc.move_px,
+                   move_collide=pc.move_collide, resizes=pc.resizes or (pc.evidence and pc.views_resize_gain <= 1),
+                   resize_factors=tuple(pc.resize_factors))
     judge = dict(flag_below=pc.flag_below, colour_weight=pc.colour_weight, revealed_weight=pc.revealed_weight,
                  shift_weight=pc.shift_weight, supported_above=pc.supported_above, shift_gain=pc.shift_gain,
                  found_shifted=pc.found_shifted, min_points=pc.min_points, min_visible=pc.min_visible,
@@ -226,7 +230,8 @@ def part_support(renderer: Renderer, face_parts: np.ndarray, part_names, pe: Pho
                  complements: list[tuple[Renderer, np.ndarray]] | None = None,
                  moves: bool = False, min_visible: float = 0.2, move_below: float = 0.9, move_changed: float = 0.3,
                  move_px: float = 4.0, move_collide: bool = True, solids: PartSolids | None = None,
-                 detail_px: float = 0.0, contrast_px: int = 3, resizes: bool = False) -> list[PartSupport]:
+                 detail_px: float = 0.0, contrast_px: int = 3, resizes: bool = False, resize_factors=RESIZE_FACTORS
+                 ) -> list[PartSupport]:
     """Every part's support at pose ``T`` (verdicts not yet set: :func:`judge_parts`).
 
     Parameters
@@ -235,8 +240,7 @@ def part_support(renderer: Renderer, face_parts: np.ndarray, part_names, pe: Pho
     pe : the photo's edges (the alignment crop)
     T : (4, 4) pose, mm
     fit_px : a contour pixel is supported by a same-orientation edge this close, crop px
-    shift_frac, shift_step : the displaced-part search slides each part's contour up to this share of the box's
-        longer side, on a grid of this step (crop px)
+    shift_frac, shift_step : the displaced-part search slides each contour up to this share of the box's side, step px
     renderers : :func:`part_renderers` of the mesh (made here when None)
     min_points : parts with fewer visible contour pixels get no shift search (and are judged 'not visible')
     kinds : the contour pixel kinds that count (:func:`part_contours`)
@@ -250,15 +254,14 @@ def part_support(renderer: Renderer, face_parts: np.ndarray, part_names, pe: Pho
         a support below ``move_below`` of the median part's
     move_changed, move_px : a move is judged when it changes at least ``move_changed`` x the part's visible contour
         pixels and shifts some vertex of it by ``move_px`` crop px (:func:`pixie.cues.part_moves.move_evidence`)
-    move_collide, solids : with ``move_collide``, moves that pass the part into another (:func:`collides` on the
-        parts' ``solids``, :func:`pixie.geometry.collide.part_solids`, made here when None) are not tried
+    move_collide, solids : with ``move_collide``, moves that pass the part into another are not tried
+        (:func:`collides` on the parts' ``solids``, :func:`pixie.geometry.collide.part_solids`; made when None)
     detail_px : the exclusive and revealed contours leave out pieces smaller than this (crop px,
         :func:`coarse_pixels`): the studs a missing brick uncovers, which the photo does not resolve
     contrast_px : a contour pixel of the model with the part (without it) belongs to the exclusive (revealed)
         contour only when the other model has no contour pixel of a like orientation within this many crop px
-    resizes : also test the part longer or shorter along the model's axes (:func:`part_resizes`: ``size_gain`` and
-        ``size``), for the parts the 3D moves would test (``min_visible``, ``move_below``, ``move_changed``,
-        ``move_px``, ``move_collide`` apply): a part of the wrong size
+    resizes, resize_factors : also test the part as long x each factor along a model axis (:func:`part_resizes`:
+        ``size_gain``, ``size``) where the moves would (their conditions apply): a part of the wrong size
     """
     face_parts = np.asarray(face_parts)
     n_parts = len(part_names)
@@ -333,7 +336,7 @@ def part_support(renderer: Renderer, face_parts: np.ndarray, part_names, pe: Pho
                     and k < len(complements) and k < len(renderers)):
                 continue
             for family in (part_moves,) * moves + (part_resizes,) * resizes:
-                tried = family(whole, k)
+                tried = family(whole, k) if family is part_moves else family(whole, k, factors=resize_factors)
                 if move_collide:
                     solids = solids if solids is not None else part_solids(whole)
                     tried = [(name, M) for name, M in tried if not collides(solids, k, M)]
@@ -344,9 +347,9 @@ def part_support(renderer: Renderer, face_parts: np.ndarray, part_names, pe: Pho
                 if f is None:
                     continue
                 if family is part_resizes:
-                    p.size_gain, p.size, p.size_support = f.gain, f.name, f.support
+                    p.size_gain, p.size, p.size_support, p.size_gains = f.gain, f.name, f.support, f.gains
                 else:
-                    p.move_gain, p.move, p.move_support = f.gain, f.name, f.support
+                    p.move_gain, p.move, p.move_support, p.move_gains = f.gain, f.name, f.support, f.gains
                     if f.gain > 0:
                         fits[k] = f
         for loser, winner in explain_away(fits, min_points).items():
