@@ -46,7 +46,7 @@ sys.path.insert(0, str(REPO / "bench"))
 
 from pixie.config import PixieConfig  # noqa: E402
 from pixie.cues.edge_align import align_kwargs, edge_fit, photo_edges, photo_edges_kwargs  # noqa: E402
-from pixie.cues.part_views import combine_views, views_kwargs  # noqa: E402
+from pixie.cues.part_views import combine_views, trusted_views, views_kwargs  # noqa: E402
 from pixie.cues.parts import (PartSupport, complement_renderers, hidden_from_runner_up, is_flip_runner_up,  # noqa: E402
                               judge_parts, part_renderers, part_support, report_kwargs, robust_part_fit)
 from pixie.eval import pose_error as M  # noqa: E402
@@ -267,7 +267,9 @@ def assembly_table(rows: list[dict], cfg: PixieConfig, params, key: str = "parts
     """:func:`table` per assembly instead of per photo: the photos of one scene (one assembly in one colour, seen
     from several viewpoints) judged together (:func:`pixie.cues.part_views.combine_views` over their part records
     judged with ``params``); false alarms per correct assembly. ``views``: ``combine_views``' thresholds on the mean
-    3D-move / resize gains (``views_kwargs(cfg.parts)`` when None)."""
+    3D-move / resize gains (``views_kwargs(cfg.parts)`` when None). Photos whose pose's aligned fit (``pose_fit``) is
+    below ``cfg.parts.views_min_fit`` are left out at the estimated poses (:func:`pixie.cues.part_views.trusted_views`),
+    as a batch does."""
     of = params if callable(params) else (lambda r: params)
     views = views_kwargs(cfg.parts) if views is None else views
     scenes: dict[int, list[dict]] = {}
@@ -276,6 +278,9 @@ def assembly_table(rows: list[dict], cfg: PixieConfig, params, key: str = "parts
             scenes.setdefault(r["scene_id"], []).append(r)
     by: dict[str, list[tuple[dict, list[str]]]] = {}
     for _, rs in sorted(scenes.items()):
+        if key == "parts":  # the estimated poses' fits (at the true poses every photo counts)
+            rs = [rs[i] for i in trusted_views([(r.get("pose_fit") or {}).get("fit") for r in rs],
+                                               cfg.parts.views_min_fit)]
         prm = of(rs[0])
         _, judge, _ = _kw(cfg, *prm[:5], resize_gain=prm[6] if len(prm) > 6 else float("inf"))
         combined = combine_views([_judged(r[key], cfg, prm) for r in rs], **views, **judge)

@@ -68,6 +68,8 @@ def test_estimate_pose_from_files(part_files, tmp_path, capsys):
     assert d["units"] == "mm" and d["K"] == np.asarray(K).tolist() and d["mesh_sha256"]
     assert d["mesh"]["file_units"] == "m" and d["mesh"]["scale_to_mm"] == 1000.0  # read in metres, scaled x 1000
     assert d["source"] == res.hypotheses[0].source and "view" in d["view_note"]
+    f = res.hypotheses[0].fit  # the pose's aligned edge fit (null when the alignment did not score it)
+    assert d["fit"] == (float(f) if np.isfinite(f) else None) and "aligned edge fit" in d["fit_note"]
     # from a prior: the estimate refined again, no box needed, no search
     prior = pixie.estimate_pose(root / "part.stl", root / "photo.png", K_text, config=small_config(),
                                 cache_dir=tmp_path / "refs", init_pose=res.T_cam_from_obj, quiet=True)

@@ -736,6 +736,31 @@ def test_a_batch_judges_the_photos_of_each_assembly_together():
     assert page.index("Assemblies (their photos judged together)") < page.index("<h2>Photos</h2>")
     assert "p3 (missing, mean score" in page
     assert assembly_reports([records[5]], PixieConfig()) == []  # no assembly named: no combined report
+    # a photo whose pose the photo's edges do not support (its aligned fit, the result's 'fit') is left out: two photos
+    # of assembly C at supported poses show p3, a third at an unsupported pose does not
+    fits = (0.8, 0.1, 0.75)
+    records = [rec(10 + i, f"c{i}.png", good if i != 1 else bad, assembly="C") for i in range(3)]
+    for r, f in zip(records, fits):
+        r["result"]["fit"] = f
+    cfg = PixieConfig()
+    (c,) = assembly_reports(records, cfg)
+    assert c["left_out"] == ["c1.png"] and c["suspect"] == [] and c["parts"][3]["n_views"] == 2
+    assert "left out (pose not supported" in _html(records, 3, cfg, [c])
+    cfg.set("parts.views_min_fit", 0.0)  # off: all three judged, and p3's mean score falls below the threshold
+    (c,) = assembly_reports(records, cfg)
+    assert c["left_out"] == [] and c["parts"][3]["n_views"] == 3
+
+
+def test_an_assemblys_photos_at_unsupported_poses_are_left_out_unless_all_are():
+    """trusted_views: photos whose pose's aligned fit is below parts.views_min_fit do not vote; unscored ones do."""
+    from pixie.cues.part_views import trusted_views
+
+    assert trusted_views([0.8, 0.1, 0.75, None], 0.3) == [0, 2, 3]  # None: not scored, kept
+    assert trusted_views([0.1, 0.2], 0.3) == [0, 1]  # none supported: judged on what there is
+    assert trusted_views([0.1, float("nan")], 0.3) == [1] and trusted_views([], 0.3) == []
+    assert PixieConfig().parts.views_min_fit == 0.3
+    with pytest.raises(ConfigError):
+        PixieConfig().set("parts.views_min_fit", 1.5)
 
 
 def test_assembly_evidence_is_computed_without_changing_a_photos_own_verdict(tmp_path):

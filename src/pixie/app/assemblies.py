@@ -10,7 +10,7 @@ from __future__ import annotations
 import html
 
 from pixie.config import PixieConfig
-from pixie.cues.part_views import combine_views, views_kwargs
+from pixie.cues.part_views import combine_views, trusted_views, views_kwargs
 from pixie.cues.parts import PartSupport, report_kwargs
 from pixie.pose.results import SUSPECT_VERDICTS
 
@@ -21,7 +21,9 @@ ASSEMBLY_NOTE = ("photos with the same 'assembly' judged together: each part's s
                  "as in one photo's report) averaged over the photos that see it (visible enough to judge), flagged "
                  "below config.parts.flag_below; move_gain / size_gain = its best 3D move's / resize's gain averaged "
                  "over them (0 where none was tried): 'displaced' from config.parts.views_move_gain, 'wrong' from "
-                 "views_resize_gain; n_views = those photos, view_verdicts = its verdict in each photo")
+                 "views_resize_gain; n_views = those photos, view_verdicts = its verdict in each photo judged; "
+                 "left_out = the photos whose pose's aligned fit is below config.parts.views_min_fit (a report at a "
+                 "wrong pose is noise), not judged")
 
 
 def assembly_reports(records: list[dict], config: PixieConfig) -> list[dict]:
@@ -40,8 +42,10 @@ def assembly_reports(records: list[dict], config: PixieConfig) -> list[dict]:
         reports = [[PartSupport.from_dict(p) for p in r["result"]["parts"]] for r in rs]
         if len({len(x) for x in reports}) != 1:
             continue  # not the same parts: not one model (a changed reference set)
-        parts = combine_views(reports, **views_kwargs(config.parts), **judge)
+        keep = trusted_views([r["result"].get("fit") for r in rs], config.parts.views_min_fit)
+        parts = combine_views([reports[i] for i in keep], **views_kwargs(config.parts), **judge)
         out.append({"assembly": name, "obj_id": obj_id, "n_photos": len(rs), "photos": [r["name"] for r in rs],
+                    "left_out": [rs[i]["name"] for i in range(len(rs)) if i not in keep],
                     "rows": [r["row"] for r in rs],
                     "suspect": [p.name for p in parts if p.verdict in SUSPECT_VERDICTS],
                     "parts": [p.as_dict() for p in parts]})
@@ -62,6 +66,9 @@ def assembly_html(assemblies: list[dict]) -> str:
             + (f"; {html.escape(p['size'])}, mean gain {p['size_gain']:.2f}" if p["verdict"] == "wrong"
                and p.get("size") else "") + ")"
             for p in sus)) if sus else "no suspect part"
+        if a.get("left_out"):
+            what += "<br>left out (pose not supported by the photo's edges): " + ", ".join(
+                html.escape(n) for n in a["left_out"])
         hidden = [p["name"] for p in a["parts"] if p["verdict"] == "not visible"]
         if hidden:
             what += "<br>not visible in any photo: " + ", ".join(html.escape(h) for h in hidden)

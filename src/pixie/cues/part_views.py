@@ -20,7 +20,7 @@ from pixie.config import PartsConfig
 from pixie.cues.parts import PartSupport, part_score, photo_medians
 from pixie.pose.results import SUSPECT_VERDICTS
 
-__all__ = ["AssemblyPart", "views_kwargs", "part_scores", "mean_gain", "combine_views"]
+__all__ = ["AssemblyPart", "views_kwargs", "part_scores", "trusted_views", "mean_gain", "combine_views"]
 
 
 def views_kwargs(pc: PartsConfig) -> dict:
@@ -67,6 +67,14 @@ class AssemblyPart:
                 "score": None if not np.isfinite(self.score) else round(self.score, 4), "n_views": self.n_views,
                 "view_verdicts": list(self.view_verdicts), "move_gain": round(self.move_gain, 4), "move": self.move,
                 "size_gain": round(self.size_gain, 4), "size": self.size}
+
+
+def trusted_views(fits: list[float | None], min_fit: float) -> list[int]:
+    """The photos of an assembly whose verdicts count (indices into ``fits``): those whose pose's aligned fit
+    (``fits``, the results' ``fit``; None: not scored, kept) is at least ``min_fit``; every photo when none is (the
+    assembly is then judged on what there is)."""
+    keep = [i for i, f in enumerate(fits) if f is None or not np.isfinite(f) or f >= min_fit]
+    return keep or list(range(len(fits)))
 
 
 def mean_gain(seen: list[PartSupport], what: str, same_hypothesis: bool = False) -> tuple[float, str]:

@@ -147,6 +147,8 @@ class PoseResult:
             "confidence_note": CALIBRATED_NOTE if self.confidence_calibrated else CONFIDENCE_NOTE,
             "n_inliers": self.n_inliers, "view": self.view, "roll": self.roll, "view_note": VIEW_NOTE,
             "source": self.hypotheses[0].source if self.hypotheses else None, "source_note": SOURCE_NOTE,
+            "fit": (float(self.hypotheses[0].fit) if self.hypotheses and np.isfinite(self.hypotheses[0].fit)
+                    else None), "fit_note": FIT_NOTE,
             "K": None if self.K is None else np.asarray(self.K).tolist(),
             "box": box,
             "mesh": {"name": self.mesh_name, "sha256": self.mesh_sha256, "file_units": self.mesh_file_units,
@@ -166,6 +168,9 @@ class PoseResult:
         }
 
 
+FIT_NOTE = ("the pose's aligned edge fit: the share of the model's visible contour points (rendered at the pose) "
+            "within align.fit_px of a same-orientation photo edge (pixie.cues.edge_align.edge_fit); null when the "
+            "alignment did not score the pose")
 SUSPECT_VERDICTS = ("missing", "displaced", "wrong")  # the part report's verdicts that flag a part (pixie.cues.parts)
 PARTS_NOTE = ("per part of the CAD model at the final pose: support = share of its visible contour pixels "
               "(silhouette, depth steps, seams) within parts.fit_px of a same-orientation photo edge; relative = "
