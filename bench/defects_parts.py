@@ -46,6 +46,7 @@ sys.path.insert(0, str(REPO / "bench"))
 
 from pixie.config import PixieConfig  # noqa: E402
 from pixie.cues.edge_align import align_kwargs, edge_fit, photo_edges, photo_edges_kwargs  # noqa: E402
+from pixie.cues.part_moves import resize_factor  # noqa: E402
 from pixie.cues.part_views import combine_views, trusted_views, views_kwargs  # noqa: E402
 from pixie.cues.parts import (PartSupport, complement_renderers, hidden_from_runner_up, is_flip_runner_up,  # noqa: E402
                               judge_parts, part_renderers, part_support, report_kwargs, robust_part_fit)
@@ -180,15 +181,10 @@ def analyse(data: Path, ests: dict, cfg: PixieConfig, echo=print, use_mask: bool
     return rows
 
 
-def resize_factor(name: str) -> float:
-    """The length factor of a resize named by :func:`pixie.cues.part_moves.part_resizes` ('1.5x as long ...')."""
-    return float(name.split("x as long")[0])
-
-
 def restricted(p: PartSupport, factors) -> PartSupport:
     """``p`` as if only the resizes by ``factors`` had been tried (records that keep every resize's gain, computed
-    with more factors than a config tries): its best resize among those, or none. Records without per-resize gains
-    are left as they are."""
+    with more factors than a config tries; factors compared as part_resizes names them, to 2 digits): its best
+    resize among those, or none. Records without per-resize gains are left as they are."""
     if not p.size_gains:
         return p
     keep = {n: g for n, g in p.size_gains.items()

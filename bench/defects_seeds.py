@@ -139,8 +139,8 @@ def main(argv=None) -> int:
         rows[seed] = [r for f in files.split(",") for r in json.loads(Path(f).read_text())["rows"]]
     if len(rows) < 2 and not args.configured_only:
         ap.error("give the rows of at least two seeds")
-    res: dict = {"max_fa": args.max_fa, "preset": args.preset, "set": args.set, "n_rows": {s: len(r) for s, r in rows.items()},
-                 "configured": {"params": _json(configured(cfg))}, "fits": {}, "pairs": []}
+    res: dict = {"max_fa": args.max_fa, "preset": args.preset, "set": args.set,
+                 "n_rows": {s: len(r) for s, r in rows.items()}, "configured": {"params": _json(configured(cfg))}, "fits": {}, "pairs": []}
     # the shipped thresholds, no fitting; per assembly as a batch with assemblies judges them (parts.evidence on:
     # the mean 3D-move / resize gains count where the rows hold that evidence)
     shipped_views = views_kwargs(dataclasses.replace(cfg.parts, evidence=True))

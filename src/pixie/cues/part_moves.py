@@ -27,7 +27,7 @@ from pixie.geometry.rotations import rodrigues
 from pixie.references.templates import edge_map
 
 __all__ = ["Contour", "MoveFit", "part_contours", "contours_of_maps", "near_maps", "explained", "part_moves",
-           "part_resizes", "is_rigid", "move_evidence", "explain_away"]
+           "part_resizes", "resize_factor", "is_rigid", "move_evidence", "explain_away"]
 
 
 def _bin_pixel(xy: np.ndarray, ori: np.ndarray, shape: tuple[int, int], n_bins: int) -> tuple[np.ndarray, ...]:
@@ -212,6 +212,11 @@ def part_resizes(mesh: Mesh, k: int, factors=RESIZE_FACTORS, min_mm: float = 1.0
                 A[a, 3] = fixed * (1.0 - s)
                 out.append((f"{s:.2g}x as long along {name}, {end} end kept", A))
     return out
+
+
+def resize_factor(name: str) -> float:
+    """The length factor of a resize :func:`part_resizes` named ('1.5x as long along z, low end kept' -> 1.5)."""
+    return float(name.split("x as long")[0])
 
 
 def is_rigid(M: np.ndarray, tol: float = 1e-6) -> bool:

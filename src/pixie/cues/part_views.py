@@ -87,12 +87,11 @@ def mean_gain(seen: list[PartSupport], what: str, same_hypothesis: bool = False)
     support, where the best of each photo may be a different change (photos whose records keep no per-move gains
     count with their best move under its name).
     """
-    best = [getattr(p, f"{what}_gain") if getattr(p, what) else 0.0 for p in seen]
+    named = [(getattr(p, what), getattr(p, f"{what}_gain")) for p in seen]  # each photo's best: (name, gain)
     if not same_hypothesis:
-        top = max(seen, key=lambda p: getattr(p, f"{what}_gain") if getattr(p, what) else -np.inf)
-        return float(np.mean(best)), getattr(top, what)
-    per = [getattr(p, f"{what}_gains") or ({getattr(p, what): getattr(p, f"{what}_gain")} if getattr(p, what) else {})
-           for p in seen]
+        top = max(named, key=lambda ng: ng[1] if ng[0] else -np.inf)[0]
+        return float(np.mean([g if n else 0.0 for n, g in named])), top
+    per = [getattr(p, f"{what}_gains") or ({n: g} if n else {}) for p, (n, g) in zip(seen, named)]
     names = sorted({n for g in per for n in g})
     if not names:
         return 0.0, ""
