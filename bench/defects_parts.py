@@ -47,6 +47,7 @@ sys.path.insert(0, str(REPO / "bench"))
 from pixie.config import PixieConfig  # noqa: E402
 from pixie.cues.edge_align import align_kwargs, edge_fit, photo_edges, photo_edges_kwargs  # noqa: E402
 from pixie.cues.part_moves import resize_factor  # noqa: E402
+from pixie.cues.part_paint import set_spill  # noqa: E402
 from pixie.cues.part_views import combine_views, trusted_views, views_kwargs  # noqa: E402
 from pixie.cues.parts import (PartSupport, complement_renderers, hidden_from_runner_up, is_flip_runner_up,  # noqa: E402
                               judge_parts, part_renderers, part_support, report_kwargs, robust_part_fit)
@@ -153,6 +154,8 @@ def analyse(data: Path, ests: dict, cfg: PixieConfig, echo=print, use_mask: bool
                                               solids=solids,
                                               align_kw=dict(hull=mesh.hull_vertices, **align_kw),
                                               support_kw=support_kw, judge_kw=judge_kw)
+            if cfg.parts.spill:  # the paint spill at the report's pose, as the estimator records it
+                set_spill(ps, img, K, ren, mesh.face_parts, Tr, colour_ab=cfg.parts.colour_ab)
             rec.update(add_mm=float(M.add(T, inst.T_cam_from_obj, phys_pts[str(phys)])),
                        add_robust_mm=float(M.add(Tr, inst.T_cam_from_obj, phys_pts[str(phys)])),
                        rot_deg=float(M.rotation_error_deg(T, inst.T_cam_from_obj)),
@@ -174,6 +177,8 @@ def analyse(data: Path, ests: dict, cfg: PixieConfig, echo=print, use_mask: bool
         gt = judge_parts(part_support(ren, mesh.face_parts, mesh.part_names, pe, inst.T_cam_from_obj, renderers=prs,
                                       complements=comps, solids=solids,
                                       **support_kw), **judge_kw)
+        if cfg.parts.spill:
+            set_spill(gt, img, K, ren, mesh.face_parts, inst.T_cam_from_obj, colour_ab=cfg.parts.colour_ab)
         rec["parts_gt"] = [p.as_dict() for p in gt]
         rows.append(rec)
         if (n + 1) % 24 == 0:

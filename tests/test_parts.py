@@ -758,7 +758,7 @@ def test_an_assemblys_photos_at_unsupported_poses_are_left_out_unless_all_are():
     assert trusted_views([0.8, 0.1, 0.75, None], 0.3) == [0, 2, 3]  # None: not scored, kept
     assert trusted_views([0.1, 0.2], 0.3) == [0, 1]  # none supported: judged on what there is
     assert trusted_views([0.1, float("nan")], 0.3) == [1] and trusted_views([], 0.3) == []
-    assert PixieConfig().parts.views_min_fit == 0.3
+    assert PixieConfig().parts.views_min_fit == 0.5
     with pytest.raises(ConfigError):
         PixieConfig().set("parts.views_min_fit", 1.5)
 
@@ -775,12 +775,16 @@ def test_assembly_evidence_is_computed_without_changing_a_photos_own_verdict(tmp
     assert support["moves"] and not support["resizes"] and judge["move_gain"] == judge["resize_gain"] == float("inf")
     cfg.set("parts.views_resize_gain", 0.3)
     assert report_kwargs(cfg.parts)[0]["resizes"]
+    spill = dict(views_spill=cfg.parts.views_spill, spill_cap=cfg.parts.spill_cap)
     assert views_kwargs(cfg.parts) == dict(views_move_gain=cfg.parts.views_move_gain,
-                                           views_resize_gain=cfg.parts.views_resize_gain, views_resize_same=False)
+                                           views_resize_gain=cfg.parts.views_resize_gain, views_resize_same=False,
+                                           **spill)
     base = PixieConfig.from_preset("default")
     assert not base.parts.evidence and views_kwargs(base.parts) == dict(views_move_gain=float("inf"),
                                                                         views_resize_gain=float("inf"),
-                                                                        views_resize_same=False)
+                                                                        views_resize_same=False, **spill)
+    cfg.set("parts.spill", False)  # not measured: never judged on
+    assert views_kwargs(cfg.parts)["views_spill"] == float("inf")
     items = [BatchItem(tmp_path / "a.png", K), BatchItem(tmp_path / "b.png", K, assembly="unit 7")]
     base.set("parts.views_move_gain", 0.3)
     said: list[str] = []
@@ -789,3 +793,30 @@ def test_assembly_evidence_is_computed_without_changing_a_photos_own_verdict(tmp
     assert with_assembly_evidence(base, items[:1], said.append) is base  # no assembly named
     base.set("parts.views_move_gain", 2.0)
     assert base.parts.views_resize_gain > 1 and with_assembly_evidence(base, items, said.append) is base  # off
+
+
+def test_a_larger_plate_spills_its_paint_and_is_wrong_over_two_photos_while_the_complete_assembly_is_not(lego):
+    """A 1x6 plate swapped for a 2x4 one (synth.defects.wrong_part): its contour is all there, but its paint shows
+    around the CAD plate (pixie.cues.part_paint). Over two photos at the true pose the plate alone is 'wrong' at
+    ``views_spill`` 0.15; the complete assembly flags nothing over three."""
+    from pixie.cues.part_paint import paint_spill, part_id_map, set_spill
+    from pixie.cues.part_views import combine_views
+    from pixie.synth.defects import wrong_part
+
+    mesh, asm = lego["mesh"], lego["asm"]
+    bad = wrong_part(asm, np.random.default_rng(11))
+    k = int(bad.defect["part"])
+    assert (asm.parts[k].params["nx"], asm.parts[k].params["ny"]) == (1, 6)
+    assert (bad.parts[k].params["nx"], bad.parts[k].params["ny"]) == (2, 4)
+    for physical, seeds, flagged in ((bad, (0, 1), [k]), (asm, (0, 1, 2), [])):
+        reports = []
+        for seed in seeds:
+            T = _pose(seed, mesh)
+            img, _ = _photo(physical, T, seed)
+            ps = [_rec(j, 0.8) for j in range(mesh.n_parts)]
+            set_spill(ps, img, K, lego["ren"], mesh.face_parts, T)
+            whole = paint_spill(img, part_id_map(lego["ren"], mesh.face_parts, T, K, 480, 640), mesh.n_parts)
+            np.testing.assert_array_equal([p.spill for p in ps], whole)  # the cut around the model changes nothing
+            reports.append(ps)
+        parts = combine_views(reports, views_spill=0.15, flag_below=0.0, colour_weight=0.0, revealed_weight=0.0)
+        assert [p.index for p in parts if p.verdict == "wrong"] == flagged

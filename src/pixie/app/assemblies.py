@@ -21,7 +21,10 @@ ASSEMBLY_NOTE = ("photos with the same 'assembly' judged together: each part's s
                  "as in one photo's report) averaged over the photos that see it (visible enough to judge), flagged "
                  "below config.parts.flag_below; move_gain / size_gain = its best 3D move's / resize's gain averaged "
                  "over them (0 where none was tried): 'displaced' from config.parts.views_move_gain, 'wrong' from "
-                 "views_resize_gain; n_views = those photos, view_verdicts = its verdict in each photo judged; "
+                 "views_resize_gain; paint_spill = its paint around it where the model shows another paint "
+                 "(pixie.cues.part_paint), capped at config.parts.spill_cap per photo and averaged over the photos "
+                 "that measure it: 'wrong' from views_spill; n_views = those photos, view_verdicts = its verdict in "
+                 "each photo judged; "
                  "left_out = the photos whose pose's aligned fit is below config.parts.views_min_fit (a report at a "
                  "wrong pose is noise), not judged")
 
@@ -64,7 +67,9 @@ def assembly_html(assemblies: list[dict]) -> str:
             + (f"; moved {html.escape(p['move'])}, mean gain {p['move_gain']:.2f}" if p["verdict"] == "displaced"
                and p.get("move") else "")
             + (f"; {html.escape(p['size'])}, mean gain {p['size_gain']:.2f}" if p["verdict"] == "wrong"
-               and p.get("size") else "") + ")"
+               and p.get("size") else "")
+            + (f"; its paint shows around it (mean spill {p['paint_spill']:.2f})" if p["verdict"] == "wrong"
+               and p.get("paint_spill") is not None else "") + ")"
             for p in sus)) if sus else "no suspect part"
         if a.get("left_out"):
             what += "<br>left out (pose not supported by the photo's edges): " + ", ".join(

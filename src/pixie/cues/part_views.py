@@ -20,14 +20,15 @@ from pixie.config import PartsConfig
 from pixie.cues.parts import PartSupport, part_score, photo_medians
 from pixie.pose.results import SUSPECT_VERDICTS
 
-__all__ = ["AssemblyPart", "views_kwargs", "part_scores", "trusted_views", "mean_gain", "combine_views"]
+__all__ = ["AssemblyPart", "views_kwargs", "part_scores", "trusted_views", "mean_gain", "mean_spill", "combine_views"]
 
 
 def views_kwargs(pc: PartsConfig) -> dict:
     """:func:`combine_views`' keywords that ``config.parts`` sets (with ``report_kwargs(pc)[1]``, the judge's)."""
     return dict(views_move_gain=pc.views_move_gain if pc.moves or pc.evidence else float("inf"),
                 views_resize_gain=pc.views_resize_gain if pc.resizes or pc.evidence else float("inf"),
-                views_resize_same=pc.views_resize_same)
+                views_resize_same=pc.views_resize_same, views_spill=pc.views_spill if pc.spill else float("inf"),
+                spill_cap=pc.spill_cap)
 
 
 def part_scores(parts: list[PartSupport], *, flag_below: float = 0.6, colour_weight: float = 0.0,
@@ -61,12 +62,14 @@ class AssemblyPart:
     move: str = ""  # the move of the photo where it gained most ('' when none was tried)
     size_gain: float = 0.0  # the same for its best resize
     size: str = ""
+    spill: float = float("nan")  # the mean over the photos that measure it of its paint spill (capped), NaN: none
 
     def as_dict(self) -> dict:
         return {"index": self.index, "name": self.name, "verdict": self.verdict,
                 "score": None if not np.isfinite(self.score) else round(self.score, 4), "n_views": self.n_views,
                 "view_verdicts": list(self.view_verdicts), "move_gain": round(self.move_gain, 4), "move": self.move,
-                "size_gain": round(self.size_gain, 4), "size": self.size}
+                "size_gain": round(self.size_gain, 4), "size": self.size,
+                "paint_spill": round(self.spill, 4) if np.isfinite(self.spill) else None}
 
 
 def trusted_views(fits: list[float | None], min_fit: float) -> list[int]:
@@ -100,9 +103,17 @@ def mean_gain(seen: list[PartSupport], what: str, same_hypothesis: bool = False)
     return means[i], names[i]
 
 
+def mean_spill(reports: list[list[PartSupport]], k: int, cap: float = 0.5) -> float:
+    """Part ``k``'s paint spill (:func:`pixie.cues.part_paint.paint_spill`) over the photos that measure it, each
+    photo's capped at ``cap`` (one photo, e.g. at a slightly wrong pose, cannot flag a part alone when another photo
+    sees it), averaged; NaN when no photo measures it."""
+    vals = [min(r[k].spill, cap) for r in reports if np.isfinite(r[k].spill)]
+    return float(np.mean(vals)) if vals else float("nan")
+
+
 def combine_views(reports: list[list[PartSupport]], *, views_move_gain: float = float("inf"),
                   views_resize_gain: float = float("inf"), views_resize_same: bool = False,
-                  **judge_kw) -> list[AssemblyPart]:
+                  views_spill: float = float("inf"), spill_cap: float = 0.5, **judge_kw) -> list[AssemblyPart]:
     """The part report of one assembly seen in several photos: each part's :func:`part_scores` averaged over the
     photos that judge it, flagged when the mean is below ``flag_below`` (``judge_kw``: :func:`judge_parts`'s keywords,
     ``report_kwargs(config.parts)[1]``).
@@ -119,6 +130,10 @@ def combine_views(reports: list[list[PartSupport]], *, views_move_gain: float = 
     that flag it give, ties to the photo with the lowest score; 'missing' when no single photo flags it. A part no
     photo judges is 'not visible'. ``reports``: each photo's :func:`part_support` records of the same mesh (verdicts
     as :func:`judge_parts` set them, or unset).
+
+    A part still 'present' whose paint spill (:func:`mean_spill`, each photo's capped at ``spill_cap``; over every
+    photo given that measures it) is at least ``views_spill`` is ``wrong``: a larger part than the CAD's keeps the
+    CAD part's contour and shows its paint around it.
     """
     if not reports:
         return []
@@ -131,9 +146,10 @@ def combine_views(reports: list[list[PartSupport]], *, views_move_gain: float = 
     for k in range(n):
         judged = [(s[k], r[k]) for s, r in zip(scores, reports) if s[k] is not None]  # the photos that judge it
         views = [r[k].verdict for r in reports]
+        spill = mean_spill(reports, k, spill_cap)
         if not judged:
             out.append(AssemblyPart(index=k, name=reports[0][k].name, verdict="not visible", score=float("nan"),
-                                    n_views=0, view_verdicts=views))
+                                    n_views=0, view_verdicts=views, spill=spill))
             continue
         mean = float(np.mean([s for s, _ in judged]))
         seen = [p for _, p in judged]
@@ -148,7 +164,9 @@ def combine_views(reports: list[list[PartSupport]], *, views_move_gain: float = 
             by_score = [p.verdict for _, p in sorted(judged, key=lambda sp: (sp[0], sp[1].verdict))]
             kinds = [v for v in by_score if v in SUSPECT_VERDICTS]
             verdict = max(kinds, key=lambda v: (kinds.count(v), -kinds.index(v))) if kinds else "missing"
+        if verdict == "present" and np.isfinite(spill) and spill >= views_spill:
+            verdict = "wrong"
         out.append(AssemblyPart(index=k, name=reports[0][k].name, verdict=verdict, score=mean, n_views=len(judged),
                                 view_verdicts=views, move_gain=move_gain, move=move,
-                                size_gain=size_gain, size=size))
+                                size_gain=size_gain, size=size, spill=spill))
     return out

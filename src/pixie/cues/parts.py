@@ -19,15 +19,12 @@ Per part (:class:`PartSupport`):
   on), ``revealed`` the support of the contour pixels this render has and the whole model's lacks (the edges of what
   the part hides). A missing part has the second and not the first; a part hidden by an occluder, or painted like
   its surroundings, has neither (its low support is no evidence of absence);
-- ``colour``: the share of its visible inner pixels whose chroma (CIELAB a*, b*) lies within ``colour_ab`` of their
-  median: one paint gives ~1 whatever the shading, a region that shows a moved part and what it uncovered gives less
-  (for uniformly painted parts; ``colour_weight`` 0 turns the cue off);
-- ``move`` / ``move_gain`` (with ``moves``, ``config.parts.moves``, off by default): the 3D move of a less supported
-  part (shifted along / turned about the model's axes) that the photo supports best, and by how much
-  (:mod:`pixie.cues.part_moves`); a part whose move gains ``move_gain`` is ``displaced``, with the move in words.
-- ``size`` / ``size_gain`` (with ``resizes``, off by default): the same for the part made longer or shorter along a
-  model axis, one end kept (:func:`pixie.cues.part_moves.part_resizes`); a part whose resize gains ``resize_gain`` is
-  ``wrong`` (another part of its family: a longer bolt, a 2x6 brick). ``move_gains`` / ``size_gains``: every move's.
+- ``colour``: the share of its visible inner pixels whose chroma (CIELAB a*, b*) is within ``colour_ab`` of their
+  median: one paint gives ~1 whatever the shading, a moved part and what it uncovered less (``colour_weight`` 0: off);
+- ``move`` / ``move_gain`` (with ``moves``, off by default): the 3D move of a less supported part (along / about the
+  model's axes, :mod:`pixie.cues.part_moves`) the photo supports best, and its gain: ``displaced`` from ``move_gain``.
+- ``size`` / ``size_gain`` (with ``resizes``, off): the same for the part longer or shorter along a model axis, one
+  end kept: ``wrong`` from ``resize_gain``. ``move_gains`` / ``size_gains``: every move's. ``spill``: see part_paint.
 
 :func:`judge_parts` turns these into verdicts: ``not visible`` (too little of it to judge), ``missing`` (its contour
 is unsupported and no shift finds it), ``displaced`` (unsupported where it should be, fully supported nearby),
@@ -90,6 +87,7 @@ class PartSupport:
     size_support: float = 0.0  # the support of the resized part's own contour pixels at that resize
     move_gains: dict[str, float] = field(default_factory=dict)  # every judged move's gain by name (combine_views)
     size_gains: dict[str, float] = field(default_factory=dict)  # every judged resize's gain by name
+    spill: float = float("nan")  # its paint around it where the model shows another (part_paint); NaN: not measured
     verdict: str = ""
     judged_at: str = ""  # 'runner-up': hidden at the chosen pose, judged at the runner-up pose (config.parts.alt_gap)
     uv: np.ndarray = field(default_factory=lambda: np.zeros((0, 2)), repr=False)  # its contour points, photo px
@@ -108,7 +106,8 @@ class PartSupport:
                 "move_explained_by": self.move_explained_by, "size_gain": round(self.size_gain, 4), "size": self.size,
                 "size_support": round(self.size_support, 4), "judged_at": self.judged_at,
                 "move_gains": {k: round(v, 4) for k, v in self.move_gains.items()},
-                "size_gains": {k: round(v, 4) for k, v in self.size_gains.items()}}
+                "size_gains": {k: round(v, 4) for k, v in self.size_gains.items()},
+                "paint_spill": round(float(self.spill), 4) if np.isfinite(self.spill) else None}
 
     @classmethod
     def from_dict(cls, d: dict) -> "PartSupport":
@@ -121,7 +120,8 @@ class PartSupport:
                    move_gain=d.get("move_gain", 0.0), move=d.get("move", ""), move_support=d.get("move_support", 0.0),
                    move_explained_by=d.get("move_explained_by", -1), size_gain=d.get("size_gain", 0.0),
                    size=d.get("size", ""), size_support=d.get("size_support", 0.0), judged_at=d.get("judged_at", ""),
-                   move_gains=dict(d.get("move_gains", {})), size_gains=dict(d.get("size_gains", {})))
+                   move_gains=dict(d.get("move_gains", {})), size_gains=dict(d.get("size_gains", {})),
+                   spill=float("nan") if d.get("paint_spill") is None else float(d["paint_spill"]))
 
 
 def report_kwargs(pc: PartsConfig) -> tuple[dict, dict]:

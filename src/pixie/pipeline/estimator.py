@@ -72,6 +72,7 @@ from pixie.geometry.render import Renderer
 from pixie.cues.edge_align import (align, align_kwargs, calibrated_confidence, coarse_kwargs, coarse_levels,
                                    confidence_size, edge_fit, flip_twins, photo_edges, photo_edges_kwargs)
 from pixie.cues.edges import EdgeQuery
+from pixie.cues.part_paint import set_spill
 from pixie.cues.parts import (complement_renderers, hidden_from_runner_up, is_flip_runner_up, judge_parts,
                               part_renderers, part_support, report_kwargs, robust_part_fit)
 from pixie.cues.shape import fused_score, shape_cues
@@ -295,6 +296,8 @@ class PoseEstimator:
         alt = self.runner_up(res, T0)
         if alt is not None and any(p.verdict == "not visible" for p in ps):
             hidden_from_runner_up(ps, report(alt.T_cam_from_obj)[1])
+        if pc.spill:
+            set_spill(ps, q.image, q.K, ren, mesh.face_parts, T, colour_ab=pc.colour_ab)
         res.part_support, res.parts = ps, [p.as_dict() for p in ps]
         res.timings["parts"] = time.perf_counter() - t
         return res
