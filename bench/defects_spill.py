@@ -17,6 +17,7 @@ Usage::
 from __future__ import annotations
 
 import argparse
+import dataclasses
 import hashlib
 import json
 import sys
@@ -63,8 +64,12 @@ def with_spill(rows: list[dict], sp: dict[str, list]) -> list[dict]:
 
 
 def judge(rows: list[dict], cfg: PixieConfig, views_spill: float, spill_cap: float) -> dict:
-    a = DP.assembly_table(rows, cfg, DS.configured(cfg), views={
-        **DP.views_kwargs(cfg.parts), "views_spill": views_spill, "spill_cap": spill_cap})
+    """Recall per defect type per assembly, their mean and false alarms per correct assembly, as a batch with
+    assemblies judges them (``parts.evidence`` on: the mean 3D-move gains count, as ``defects_seeds.py``'s shipped
+    row), with the spill's threshold and cap."""
+    views = DP.views_kwargs(dataclasses.replace(cfg.parts, evidence=True))
+    a = DP.assembly_table(rows, cfg, DS.configured(cfg), views={**views, "views_spill": views_spill,
+                                                                 "spill_cap": spill_cap})
     rec = {d: a[d]["recall"] for d in TYPES if d in a}
     return dict(recall=rec, mean=float(np.mean(list(rec.values()))),
                 fa=a.get("none (correct assembly)", {}).get("false_alarms_per_assembly", 0.0))
