@@ -731,8 +731,10 @@ def test_a_batch_judges_the_photos_of_each_assembly_together():
     assert a["n_photos"] == 2 and a["photos"] == ["a0.png", "a2.png"] and a["suspect"] == []  # the failed one left out
     assert {p["name"]: p["verdict"] for p in b["parts"]}["p3"] == "missing" and b["parts"][3]["n_views"] == 2
     b["parts"][2].update(verdict="displaced", move="+x 8.0 mm", move_gain=0.45)  # as combine_views sets them
+    b["parts"][1].update(verdict="wrong", paint_spill=0.42)
     page = _html(records, 6, PixieConfig(), reps)
     assert "p2 (displaced, mean score" in page and "moved +x 8.0 mm, mean gain 0.45)" in page
+    assert "p1 (wrong, mean score" in page and "its paint shows around it (mean spill 0.42)" in page
     assert page.index("Assemblies (their photos judged together)") < page.index("<h2>Photos</h2>")
     assert "p3 (missing, mean score" in page
     assert assembly_reports([records[5]], PixieConfig()) == []  # no assembly named: no combined report
