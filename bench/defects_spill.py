@@ -30,7 +30,8 @@ import defects_parts as DP  # noqa: E402
 import defects_seeds as DS  # noqa: E402
 
 from pixie.config import PixieConfig  # noqa: E402
-from pixie.cues.part_paint import paint_spill, part_id_map  # noqa: E402
+from pixie.cues.part_paint import set_spill  # noqa: E402
+from pixie.cues.parts import PartSupport  # noqa: E402
 from pixie.eval.datasets import BopDataset  # noqa: E402
 from pixie.geometry.mesh import load_mesh  # noqa: E402
 from pixie.geometry.render import Renderer  # noqa: E402
@@ -40,7 +41,8 @@ TYPES = ("missing", "shifted", "rotated", "wrong")
 
 
 def spills(data: Path, rows: list[dict], colour_ab: float) -> dict[str, list]:
-    """Each row's paint spill per part at its report's pose, keyed 'scene_image' (None: not measured)."""
+    """Each row's paint spill per part at its report's pose (:func:`set_spill`, as the estimator measures it), keyed
+    'scene_image' (None: not measured)."""
     ds, meshes, out = BopDataset(data), {}, {}
     for r in rows:
         if r["obj_id"] not in meshes:
@@ -48,9 +50,9 @@ def spills(data: Path, rows: list[dict], colour_ab: float) -> dict[str, list]:
             meshes[r["obj_id"]] = (m, Renderer(m))
         m, ren = meshes[r["obj_id"]]
         img, K = ds.load_rgb(r["scene_id"], r["im_id"]), ds.camera(r["scene_id"], r["im_id"]).K
-        s = paint_spill(img, part_id_map(ren, m.face_parts, r["T_robust"], K, *img.shape[:2]), m.n_parts,
-                        colour_ab=colour_ab)
-        out[f"{r['scene_id']}_{r['im_id']}"] = [None if not np.isfinite(x) else float(x) for x in s]
+        parts = [PartSupport.from_dict(p) for p in r["parts"]]
+        set_spill(parts, img, K, ren, m.face_parts, r["T_robust"], colour_ab=colour_ab)
+        out[f"{r['scene_id']}_{r['im_id']}"] = [None if not np.isfinite(p.spill) else p.spill for p in parts]
     return out
 
 
@@ -87,9 +89,7 @@ def main(argv=None) -> int:
     ap.add_argument("--set", action="append", default=[], metavar="SECTION.KEY=VALUE")
     ap.add_argument("--out", type=Path, required=True)
     args = ap.parse_args(argv)
-    cfg = PixieConfig.from_preset(args.preset)
-    for s in args.set:
-        cfg.set(*s.split("=", 1))
+    cfg = PixieConfig.from_preset(args.preset).apply_overrides(args.set)
     data = dict(a.split("=", 1) for a in args.data)
     seeds = {}
     args.cache.mkdir(parents=True, exist_ok=True)
