@@ -204,9 +204,11 @@ def restricted(p: PartSupport, factors) -> PartSupport:
 def _judged(parts: list[dict], cfg: PixieConfig, params: tuple) -> list[PartSupport]:
     """Stored part records judged under other (flag_below, colour_weight, revealed_weight, shift_weight[, move_gain[,
     alt_gap[, resize_gain]]]) (:func:`judge_parts` on the records; a missing resize_gain: none, as without resizes),
-    their resizes restricted to ``cfg.parts.resize_factors`` (:func:`restricted`)."""
+    their resizes restricted to those the config tries (:func:`restricted`: ``cfg.parts.resize_factors`` for one
+    photo's verdict, ``views_resize_factors`` for an assembly's)."""
     _, judge, _ = _kw(cfg, *params[:5], resize_gain=params[6] if len(params) > 6 else float("inf"))
-    return judge_parts([restricted(PartSupport.from_dict(p), cfg.parts.resize_factors) for p in parts], **judge)
+    factors = sorted(set(cfg.parts.resize_factors) | set(cfg.parts.views_resize_factors))
+    return judge_parts([restricted(PartSupport.from_dict(p), factors) for p in parts], **judge)
 
 
 def row_verdicts(r: dict, cfg: PixieConfig, params: tuple, key: str = "parts") -> list[str]:
@@ -406,10 +408,21 @@ def fmt(t: dict) -> str:
                       "false_alarms_per_image", "images_flagged"])
 
 
+def configured(cfg: PixieConfig) -> tuple:
+    """The configured thresholds as :func:`row_verdicts`' ``params`` (flag_below, colour_weight, revealed_weight,
+    shift_weight, move_gain, alt_gap, resize_gain; a move / resize gain of inf: not judged on)."""
+    pc, inf = cfg.parts, float("inf")
+    return (pc.flag_below, pc.colour_weight, pc.revealed_weight, pc.shift_weight,
+            pc.move_gain if pc.moves else inf, pc.alt_gap, pc.resize_gain if pc.resizes else inf)
+
+
 def main(argv=None) -> int:
     ap = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
     ap.add_argument("--data", type=Path, required=True)
-    ap.add_argument("--estimates", type=Path, action="append", required=True, help="bench/defects.py journal(s)")
+    ap.add_argument("--estimates", type=Path, action="append", default=[], help="bench/defects.py journal(s)")
+    ap.add_argument("--gt-only", action="store_true", help="no estimates: the part report at the true poses only, "
+                    "every photo (the evidence's own quality, before any pose is estimated); the rows are written "
+                    "to --out and scored at the true poses")
     ap.add_argument("--preset", default="default")
     ap.add_argument("--set", action="append", default=[], metavar="SECTION.KEY=VALUE")
     ap.add_argument("--out", type=Path, required=True)
@@ -442,9 +455,13 @@ def main(argv=None) -> int:
         rows = json.loads(args.out.read_text())["rows"]
     else:
         ests: dict = {}
+        if args.gt_only:  # every photo, no estimated pose (analyse then reports at the true pose only)
+            ests = {(tg.scene_id, tg.im_id): {"failed": True} for tg in BopDataset(args.data).targets()}
+        elif not args.estimates:
+            raise SystemExit("--estimates JOURNAL is needed (or --gt-only, --merge, --reuse)")
         for j in args.estimates:
             ests.update(target_estimates(j, args.data, cfg, by_target=args.by_target))
-        print(f"{len(ests)} target-model estimates")
+        print(f"{len(ests)} target-model estimates" + (" (none: true poses only)" if args.gt_only else ""))
         if args.types:  # only the photos of these defect types ('none': the correct assemblies)
             want = set(args.types.split(","))
             kind = {v["scene_id"]: (v.get("defect") or {}).get("type") or "none"
@@ -455,8 +472,10 @@ def main(argv=None) -> int:
             k, n = (int(x) for x in args.shard.split("/"))
             ests = {key: ests[key] for key in sorted(ests)[k::n]}
         rows = analyse(args.data, ests, cfg, use_mask=args.mask, parts_dir=args.parts_dir)
-        if args.shard:
+        if args.shard or args.gt_only:
             args.out.write_text(json.dumps({"shard": args.shard, "rows": rows}, default=float))
+            if args.gt_only and not args.shard:
+                print(fmt_assembly(assembly_table(rows, cfg, configured(cfg), key="parts_gt")))
             print(f"wrote {len(rows)} rows to {args.out} (shard {args.shard}; --merge the shards to score them)")
             return 0
     fit = [r for r in rows if half_of(r) == 0]
@@ -466,10 +485,8 @@ def main(argv=None) -> int:
     chosen5 = choose_moves(fit, cfg, chosen4, max_fa=mf)  # then the 3D moves' threshold with those fixed
     chosen6 = choose_alt(fit, cfg, chosen5, max_fa=mf)  # then the runner-up's gap
     chosen = choose_resize(fit, cfg, chosen6, max_fa=mf)  # then the resizes' threshold
-    pc = cfg.parts
+    conf = configured(cfg)
     inf = float("inf")
-    conf = (pc.flag_below, pc.colour_weight, pc.revealed_weight, pc.shift_weight,
-            pc.move_gain if pc.moves else inf, pc.alt_gap, pc.resize_gain if pc.resizes else inf)
     ablations = {"session-10 score (support + colour)": choose(fit, cfg, revealed=[0.0], shifts=[0.0], max_fa=mf) + (inf, 0.0, inf),
                  "no colour": choose(fit, cfg, colours=[0.0], max_fa=mf) + (inf, 0.0, inf),
                  "no contrast with the model without the part": choose(fit, cfg, revealed=[0.0], max_fa=mf) + (inf, 0.0, inf),

@@ -8,8 +8,8 @@ import pytest
 
 from pixie.config import PART_KINDS, PixieConfig, RefsConfig
 from pixie.cues.edge_align import align, align_kwargs, photo_edges, photo_edges_kwargs
-from pixie.cues.part_moves import explained, near_maps
-from pixie.cues.parts import (coarse_pixels, complement_renderers, judge_parts, part_moves, part_renderers, part_support,
+from pixie.cues.part_moves import coarse_pixels, explained, near_maps
+from pixie.cues.parts import (complement_renderers, judge_parts, part_moves, part_renderers, part_support,
                               report_kwargs, robust_part_fit)
 from pixie.errors import ConfigError, MeshError
 from pixie.geometry.camera import look_at, make_K, rotation_angle_deg
@@ -773,18 +773,21 @@ def test_assembly_evidence_is_computed_without_changing_a_photos_own_verdict(tmp
 
     cfg = PixieConfig.from_preset("default")
     cfg.set("parts.evidence", True)
-    support, judge = report_kwargs(cfg.parts)  # the shipped views thresholds: moves judged per assembly, resizes not
-    assert support["moves"] and not support["resizes"] and judge["move_gain"] == judge["resize_gain"] == float("inf")
+    support, judge = report_kwargs(cfg.parts)  # the shipped views thresholds: moves and shorter resizes per assembly
+    assert support["moves"] and support["resizes"] and judge["move_gain"] == judge["resize_gain"] == float("inf")
+    assert support["resize_factors"] == (0.5, 0.75) and support["resize_below"] == cfg.parts.views_resize_below > 10
+    cfg.set("parts.views_resize_gain", 2.0)
+    assert not report_kwargs(cfg.parts)[0]["resizes"]
     cfg.set("parts.views_resize_gain", 0.3)
-    assert report_kwargs(cfg.parts)[0]["resizes"]
     spill = dict(views_spill=cfg.parts.views_spill, spill_cap=cfg.parts.spill_cap)
     assert views_kwargs(cfg.parts) == dict(views_move_gain=cfg.parts.views_move_gain,
-                                           views_resize_gain=cfg.parts.views_resize_gain, views_resize_same=False,
-                                           **spill)
+                                           views_resize_gain=cfg.parts.views_resize_gain, views_resize_same=True,
+                                           views_resize_factors=(0.5, 0.75), **spill)
     base = PixieConfig.from_preset("default")
     assert not base.parts.evidence and views_kwargs(base.parts) == dict(views_move_gain=float("inf"),
                                                                         views_resize_gain=float("inf"),
-                                                                        views_resize_same=False, **spill)
+                                                                        views_resize_same=True,
+                                                                        views_resize_factors=(0.5, 0.75), **spill)
     cfg.set("parts.spill", False)  # not measured: never judged on
     assert views_kwargs(cfg.parts)["views_spill"] == float("inf")
     items = [BatchItem(tmp_path / "a.png", K), BatchItem(tmp_path / "b.png", K, assembly="unit 7")]
@@ -794,7 +797,11 @@ def test_assembly_evidence_is_computed_without_changing_a_photos_own_verdict(tmp
     assert on.parts.evidence and not base.parts.evidence and said and "evidence" in said[0]
     assert with_assembly_evidence(base, items[:1], said.append) is base  # no assembly named
     base.set("parts.views_move_gain", 2.0)
-    assert base.parts.views_resize_gain > 1 and with_assembly_evidence(base, items, said.append) is base  # off
+    assert with_assembly_evidence(base, items, said.append).parts.evidence  # the shorter resizes still ask for it
+    base.set("parts.resizes", True)  # one photo's resizes are not the assembly's: still asked for
+    assert with_assembly_evidence(base, items, said.append).parts.evidence
+    base.set("parts.views_resize_gain", 2.0)
+    assert with_assembly_evidence(base, items, said.append) is base  # off
 
 
 def test_a_larger_plate_spills_its_paint_and_is_wrong_over_two_photos_while_the_complete_assembly_is_not(lego):
@@ -822,3 +829,68 @@ def test_a_larger_plate_spills_its_paint_and_is_wrong_over_two_photos_while_the_
             reports.append(ps)
         parts = combine_views(reports, views_spill=0.15, flag_below=0.0, colour_weight=0.0, revealed_weight=0.0)
         assert [p.index for p in parts if p.verdict == "wrong"] == flagged
+
+
+def test_a_photos_verdict_reads_its_resizes_and_an_assemblys_its_own():
+    """One record keeps every resize tried (both factor sets, :func:`tried_resizes`); one photo's verdict reads only
+    ``parts.resize_factors`` (longer), an assembly's only ``views_resize_factors`` (shorter)."""
+    from pixie.cues.part_moves import of_factors
+    from pixie.cues.part_views import combine_views
+    from pixie.cues.parts import tried_resizes
+
+    longer, shorter = "2x as long along x, low end kept", "0.5x as long along y, high end kept"
+    assert of_factors({longer: 0.5, shorter: 0.6, "0.75x as long along z, low end kept": 0.1}, (0.5, 0.75)) == {
+        shorter: 0.6, "0.75x as long along z, low end kept": 0.1}
+    reports = []
+    for _ in range(3):
+        r = [_rec(0, 0.8), _rec(1, 0.75), _rec(2, 0.8), _rec(3, 0.85)]
+        r[0].size_gains, r[0].size, r[0].size_gain = {longer: 0.6, shorter: 0.1}, longer, 0.6
+        r[1].size_gains, r[1].size, r[1].size_gain = {longer: 0.1, shorter: 0.5}, shorter, 0.5
+        reports.append(judge_parts(r, **{**JUDGE, "resize_gain": 0.3}))  # the shipped parts.resize_factors
+    assert [p.verdict for p in reports[0]][:2] == ["wrong", "present"]  # part 1's shorter resize is not read
+    both = judge_parts(reports[0], **{**JUDGE, "resize_gain": 0.3, "resize_factors": None})  # every one recorded
+    assert [p.verdict for p in both][:2] == ["wrong", "wrong"]
+    parts = combine_views(reports, views_resize_gain=0.4, views_resize_same=True, views_resize_factors=(0.5, 0.75),
+                          **JUDGE)
+    assert [p.verdict for p in parts][:2] == ["present", "wrong"] and parts[1].size == shorter
+    assert parts[0].size_gain == pytest.approx(0.1) and parts[1].size_gain == pytest.approx(0.5)
+    cfg = PixieConfig()
+    assert tried_resizes(cfg.parts) == ((), 0.0)  # one photo, no resizes: none tried
+    cfg.set("parts.evidence", True)
+    assert tried_resizes(cfg.parts) == ((0.5, 0.75), 100.0)
+    cfg.set("parts.resizes", True)
+    assert tried_resizes(cfg.parts) == ((0.5, 0.75, 1.5, 2.0, 3.0), 100.0)
+    cfg.set("parts.evidence", False)
+    assert tried_resizes(cfg.parts) == ((1.5, 2.0, 3.0), cfg.parts.resize_below)
+
+
+def test_a_half_length_brick_is_wrong_over_four_photos_and_the_complete_assembly_is_not(lego):
+    """The assembly's shorter resizes (``parts.views_resize_factors``, tried on every part in view): a 1x6 brick
+    swapped for a 1x3 (synth.defects.wrong_part) is 'wrong' over four photos at the true pose, found half as long
+    along x; the complete assembly flags no part and no resize gains anything. Measured: mean gain of that resize
+    0.49 (threshold 0.4); complete assembly 0.0."""
+    from pixie.cues.part_views import combine_views, views_kwargs
+    from pixie.synth.defects import wrong_part
+
+    cfg = PixieConfig()
+    cfg.set("parts.evidence", True)  # as a batch with an 'assembly' column turns it on
+    support, judge = report_kwargs(cfg.parts)
+    mesh, asm = lego["mesh"], lego["asm"]
+    bad = wrong_part(asm, np.random.default_rng(9))
+    k = int(bad.defect["part"])
+    assert (asm.parts[k].params["nx"], asm.parts[k].params["ny"]) == (1, 6)
+    assert (bad.parts[k].params["nx"], bad.parts[k].params["ny"]) == (1, 3)
+    for physical, flagged in ((bad, [k]), (asm, [])):
+        reports = []
+        for seed in range(4):
+            T = _pose(seed, mesh)
+            img, box = _photo(physical, T, seed)
+            ps = part_support(lego["ren"], mesh.face_parts, mesh.part_names, photo_edges(img, K, box, **PHOTO), T,
+                              renderers=lego["parts"], complements=lego["comps"], solids=lego["solids"], **support)
+            reports.append(judge_parts(ps, **judge))
+        parts = combine_views(reports, **views_kwargs(cfg.parts), **judge)
+        assert [p.index for p in parts if p.verdict in ("missing", "displaced", "wrong")] == flagged
+        if flagged:
+            assert parts[k].verdict == "wrong" and parts[k].size.startswith("0.5x as long along x")
+        else:
+            assert max(p.size_gain for p in parts) < 0.2

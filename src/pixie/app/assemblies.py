@@ -19,8 +19,9 @@ __all__ = ["ASSEMBLY_NOTE", "assembly_reports", "assembly_html"]
 
 ASSEMBLY_NOTE = ("photos with the same 'assembly' judged together: each part's score (pixie.cues.parts.part_score, "
                  "as in one photo's report) averaged over the photos that see it (visible enough to judge), flagged "
-                 "below config.parts.flag_below; move_gain / size_gain = its best 3D move's / resize's gain averaged "
-                 "over them (0 where none was tried): 'displaced' from config.parts.views_move_gain, 'wrong' from "
+                 "below config.parts.flag_below; move_gain = its best 3D move's gain averaged over them (0 where "
+                 "none was tried), size_gain = the gain of one resize (views_resize_factors: a part shorter along "
+                 "one axis) averaged over them: 'displaced' from config.parts.views_move_gain, 'wrong' from "
                  "views_resize_gain; paint_spill = its paint around it where the model shows another paint "
                  "(pixie.cues.part_paint), capped at config.parts.spill_cap per photo and averaged over the photos "
                  "that measure it: 'wrong' from views_spill; n_views = those photos, view_verdicts = its verdict in "

@@ -288,7 +288,8 @@ def with_assembly_evidence(config: PixieConfig, items: list[BatchItem], echo: Ca
     3D-move / resize evidence (``parts.views_move_gain`` / ``views_resize_gain`` at most 1) that the config does not
     compute yet; else ``config`` itself. A photo's own verdict does not change (pixie.cues.parts.report_kwargs)."""
     pc = config.parts
-    wanted = (pc.views_move_gain <= 1 and not pc.moves) or (pc.views_resize_gain <= 1 and not pc.resizes)
+    # one photo's resizes (parts.resizes) are not the assembly's (views_resize_factors, on every part): asked for anyway
+    wanted = (pc.views_move_gain <= 1 and not pc.moves) or pc.views_resize_gain <= 1
     if not any(it.assembly for it in items) or not pc.enabled or pc.evidence or not wanted:
         return config
     config = copy.deepcopy(config)

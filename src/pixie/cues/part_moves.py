@@ -26,8 +26,8 @@ from pixie.geometry.render import RenderResult, Renderer
 from pixie.geometry.rotations import rodrigues
 from pixie.references.templates import edge_map
 
-__all__ = ["Contour", "MoveFit", "part_contours", "contours_of_maps", "near_maps", "explained", "part_moves",
-           "part_resizes", "resize_factor", "is_rigid", "move_evidence", "explain_away"]
+__all__ = ["Contour", "MoveFit", "part_contours", "contours_of_maps", "near_maps", "explained", "coarse_pixels",
+           "part_moves", "part_resizes", "resize_factor", "of_factors", "is_rigid", "move_evidence", "explain_away"]
 
 
 def _bin_pixel(xy: np.ndarray, ori: np.ndarray, shape: tuple[int, int], n_bins: int) -> tuple[np.ndarray, ...]:
@@ -128,6 +128,34 @@ def _near_step(depth: np.ndarray, obj: np.ndarray, jump: np.ndarray) -> np.ndarr
     return obj & (dmax - depth > jump)
 
 
+def coarse_pixels(xy: np.ndarray, sel: np.ndarray, shape: tuple[int, int], detail_px: float) -> np.ndarray:
+    """``sel`` without the contour pixels of small pieces: of the pixels ``xy[sel]``, the 8-connected components
+    whose bounding box is under ``detail_px`` on its longer side are dropped (a LEGO stud's rim, a screw head: detail
+    the photo does not resolve at this scale). ``detail_px`` <= 0 keeps every pixel.
+
+    Parameters
+    ----------
+    xy : (N, 2) pixel centres (x, y) of a contour; sel : (N,) bool, the pixels considered
+    shape : (H, W) of the image the pixels lie in; detail_px : the smallest piece kept, px
+
+    Returns
+    -------
+    (N,) bool: ``sel`` and in a component at least ``detail_px`` across
+    """
+    sel = np.asarray(sel, bool)
+    if detail_px <= 0 or not sel.any():
+        return sel
+    H, W = shape
+    x = np.clip(np.rint(xy[:, 0]).astype(int), 0, W - 1)
+    y = np.clip(np.rint(xy[:, 1]).astype(int), 0, H - 1)
+    m = np.zeros((H, W), np.uint8)
+    m[y[sel], x[sel]] = 1
+    n, lab, stats, _ = cv2.connectedComponentsWithStats(m, connectivity=8)
+    big = np.maximum(stats[:, cv2.CC_STAT_WIDTH], stats[:, cv2.CC_STAT_HEIGHT]) >= detail_px
+    big[0] = False  # the background label
+    return sel & big[lab[y, x]]
+
+
 def part_moves(mesh: Mesh, k: int, fractions=(1 / 6, 1 / 4, 1 / 3, 1 / 2, 1.0), angles_deg=(90.0, 180.0, 270.0),
                min_mm: float = 1.0, same_mm: float = 0.5) -> list[tuple[str, np.ndarray]]:
     """Rigid 3D moves of part ``k`` that a wrong assembly could have made, in the object frame (``X' = M X``).
@@ -217,6 +245,13 @@ def part_resizes(mesh: Mesh, k: int, factors=RESIZE_FACTORS, min_mm: float = 1.0
 def resize_factor(name: str) -> float:
     """The length factor of a resize :func:`part_resizes` named ('1.5x as long along z, low end kept' -> 1.5)."""
     return float(name.split("x as long")[0])
+
+
+def of_factors(gains: dict[str, float], factors) -> dict[str, float]:
+    """The resizes of ``gains`` (name -> gain, as :func:`part_resizes` names them) whose length factor is one of
+    ``factors`` (compared to 2 digits, as the names give them)."""
+    fs = [float(f"{f:.2g}") for f in factors]
+    return {n: g for n, g in gains.items() if any(np.isclose(resize_factor(n), f) for f in fs)}
 
 
 def is_rigid(M: np.ndarray, tol: float = 1e-6) -> bool:

@@ -12,11 +12,12 @@ it, and the part is flagged when the mean is below ``config.parts.flag_below``, 
 
 from __future__ import annotations
 
-from dataclasses import dataclass
+from dataclasses import dataclass, replace
 
 import numpy as np
 
 from pixie.config import PartsConfig
+from pixie.cues.part_moves import of_factors
 from pixie.cues.parts import PartSupport, part_score, photo_medians
 from pixie.pose.results import SUSPECT_VERDICTS
 
@@ -27,8 +28,8 @@ def views_kwargs(pc: PartsConfig) -> dict:
     """:func:`combine_views`' keywords that ``config.parts`` sets (with ``report_kwargs(pc)[1]``, the judge's)."""
     return dict(views_move_gain=pc.views_move_gain if pc.moves or pc.evidence else float("inf"),
                 views_resize_gain=pc.views_resize_gain if pc.resizes or pc.evidence else float("inf"),
-                views_resize_same=pc.views_resize_same, views_spill=pc.views_spill if pc.spill else float("inf"),
-                spill_cap=pc.spill_cap)
+                views_resize_same=pc.views_resize_same, views_resize_factors=tuple(pc.views_resize_factors),
+                views_spill=pc.views_spill if pc.spill else float("inf"), spill_cap=pc.spill_cap)
 
 
 def part_scores(parts: list[PartSupport], *, flag_below: float = 0.6, colour_weight: float = 0.0,
@@ -80,7 +81,8 @@ def trusted_views(fits: list[float | None], min_fit: float) -> list[int]:
     return keep or list(range(len(fits)))
 
 
-def mean_gain(seen: list[PartSupport], what: str, same_hypothesis: bool = False) -> tuple[float, str]:
+def mean_gain(seen: list[PartSupport], what: str, same_hypothesis: bool = False,
+              factors=None) -> tuple[float, str]:
     """One part's 3D-move (``what`` 'move') or resize ('size') evidence over the photos that judge it (``seen``): the
     mean gain and the move in words.
 
@@ -88,8 +90,11 @@ def mean_gain(seen: list[PartSupport], what: str, same_hypothesis: bool = False)
     the photo where it gained most. True: each move's own gain averaged over the photos (0 in a photo where it was
     not judged: it changed nothing in view), and the best such mean: one physical change that every photo must
     support, where the best of each photo may be a different change (photos whose records keep no per-move gains
-    count with their best move under its name).
+    count with their best move under its name). ``factors`` (resizes only): only the resizes by these length factors
+    count, in records that keep every resize's gain (:func:`pixie.cues.part_moves.of_factors`; None: all).
     """
+    if factors is not None and what == "size":
+        seen = [_only(p, factors) for p in seen]
     named = [(getattr(p, what), getattr(p, f"{what}_gain")) for p in seen]  # each photo's best: (name, gain)
     if not same_hypothesis:
         top = max(named, key=lambda ng: ng[1] if ng[0] else -np.inf)[0]
@@ -103,6 +108,15 @@ def mean_gain(seen: list[PartSupport], what: str, same_hypothesis: bool = False)
     return means[i], names[i]
 
 
+def _only(p: PartSupport, factors) -> PartSupport:
+    """``p`` with only its resizes by ``factors`` (a copy; records without per-resize gains as they are)."""
+    if not p.size_gains:
+        return p
+    keep = of_factors(p.size_gains, factors)
+    best = max(keep, key=keep.get) if keep else ""
+    return replace(p, size_gains=keep, size=best, size_gain=keep.get(best, 0.0))
+
+
 def mean_spill(reports: list[list[PartSupport]], k: int, cap: float = 0.5) -> float:
     """Part ``k``'s paint spill (:func:`pixie.cues.part_paint.paint_spill`) over the photos that measure it, each
     photo's capped at ``cap`` (one photo, e.g. at a slightly wrong pose, cannot flag a part alone when another photo
@@ -112,7 +126,7 @@ def mean_spill(reports: list[list[PartSupport]], k: int, cap: float = 0.5) -> fl
 
 
 def combine_views(reports: list[list[PartSupport]], *, views_move_gain: float = float("inf"),
-                  views_resize_gain: float = float("inf"), views_resize_same: bool = False,
+                  views_resize_gain: float = float("inf"), views_resize_same: bool = False, views_resize_factors=None,
                   views_spill: float = float("inf"), spill_cap: float = 0.5, **judge_kw) -> list[AssemblyPart]:
     """The part report of one assembly seen in several photos: each part's :func:`part_scores` averaged over the
     photos that judge it, flagged when the mean is below ``flag_below`` (``judge_kw``: :func:`judge_parts`'s keywords,
@@ -123,6 +137,8 @@ def combine_views(reports: list[list[PartSupport]], *, views_move_gain: float = 
     ``views_resize_gain`` is ``wrong``, else one whose best move gains on average at least ``views_move_gain`` is
     ``displaced`` (``config.parts.views_resize_gain`` / ``views_move_gain``): a brick one stud off or a part of another
     size keeps most of its contour supported in every photo, and only the moved or resized part's contour tells.
+    Only the resizes by ``views_resize_factors`` count (None: every one recorded); with ``views_resize_same`` one
+    resize's gain is averaged over the photos (the same physical change), else each photo's best.
 
     One photo's evidence about a part is noisy: it is half hidden, painted like what is behind it, or one of its
     edges falls on clutter. Over photos from other viewpoints the noise averages out and a defect, which is there
@@ -154,7 +170,7 @@ def combine_views(reports: list[list[PartSupport]], *, views_move_gain: float = 
         mean = float(np.mean([s for s, _ in judged]))
         seen = [p for _, p in judged]
         move_gain, move = mean_gain(seen, "move", same_hypothesis=False)
-        size_gain, size = mean_gain(seen, "size", same_hypothesis=views_resize_same)
+        size_gain, size = mean_gain(seen, "size", same_hypothesis=views_resize_same, factors=views_resize_factors)
         verdict = "present"
         if size_gain >= views_resize_gain:
             verdict = "wrong"

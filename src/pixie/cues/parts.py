@@ -47,12 +47,12 @@ from pixie.cues.edge_photo import PhotoEdges
 from pixie.geometry.camera import rotation_angle_deg
 from pixie.geometry.collide import PartSolids, collides, part_solids
 from pixie.geometry.mesh import Mesh, from_arrays
-from pixie.cues.part_moves import (MoveFit, explain_away, explained, move_evidence, near_maps, part_contours,
-                                   part_moves, part_resizes, RESIZE_FACTORS)
+from pixie.cues.part_moves import (MoveFit, coarse_pixels, explain_away, explained, move_evidence, near_maps,
+                                   of_factors, part_contours, part_moves, part_resizes, RESIZE_FACTORS)
 from pixie.geometry.render import Renderer
 from pixie.pose.results import SUSPECT_VERDICTS
 
-__all__ = ["VERDICTS", "PartSupport", "report_kwargs", "part_renderers", "complement_renderers", "part_support",
+__all__ = ["VERDICTS", "PartSupport", "tried_resizes", "report_kwargs", "part_renderers", "complement_renderers", "part_support",
            "part_score", "photo_medians", "judge_parts", "robust_part_fit",
            "hidden_from_runner_up", "is_flip_runner_up"]
 
@@ -124,22 +124,36 @@ class PartSupport:
                    spill=float("nan") if d.get("paint_spill") is None else float(d["paint_spill"]))
 
 
+def tried_resizes(pc: PartsConfig) -> tuple[tuple[float, ...], float]:
+    """The resize factors ``config.parts`` has :func:`part_support` try and the relative support below which a part
+    is tried: ``resize_factors`` below ``resize_below`` for one photo's verdict (``pc.resizes``), and with the
+    evidence an assembly's verdict uses (``pc.evidence`` and ``views_resize_gain`` <= 1) ``views_resize_factors``
+    below ``views_resize_below`` too (one set tried on the parts either gate lets through; each verdict then reads
+    its own factors' gains). ((), 0) when neither is on."""
+    photo, views = pc.resizes, pc.evidence and pc.views_resize_gain <= 1
+    factors = sorted(set(pc.resize_factors if photo else []) | set(pc.views_resize_factors if views else []))
+    below = max([pc.resize_below] * photo + [pc.views_resize_below] * views, default=0.0)
+    return tuple(factors), below
+
+
 def report_kwargs(pc: PartsConfig) -> tuple[dict, dict]:
     """The keywords of :func:`part_support` and of :func:`judge_parts` that ``config.parts`` sets (``pc.evidence``:
     the 3D moves / resizes an assembly's verdict uses, ``pc.views_move_gain`` / ``views_resize_gain`` <= 1, are
-    tried, but a photo is judged on them only with ``pc.moves`` / ``pc.resizes``)."""
+    tried, but a photo is judged on them only with ``pc.moves`` / ``pc.resizes``, and on its ``resize_factors``
+    only)."""
+    factors, below = tried_resizes(pc)
     support = dict(fit_px=pc.fit_px, shift_frac=pc.shift_frac, min_points=pc.min_points, colour_ab=pc.colour_ab,
                    step_frac=pc.step_frac, detail_px=pc.detail_px, contrast_px=pc.contrast_px,
                    kinds=tuple(PART_KINDS.index(k) for k in pc.kinds),
                    moves=pc.moves or (pc.evidence and pc.views_move_gain <= 1), min_visible=pc.min_visible,
                    move_below=pc.move_below, move_changed=pc.move_changed, move_px=pc.move_px,
-                   move_collide=pc.move_collide, resizes=pc.resizes or (pc.evidence and pc.views_resize_gain <= 1),
-                   resize_factors=tuple(pc.resize_factors))
+                   move_collide=pc.move_collide, resizes=bool(factors), resize_factors=factors or RESIZE_FACTORS,
+                   resize_below=below)
     judge = dict(flag_below=pc.flag_below, colour_weight=pc.colour_weight, revealed_weight=pc.revealed_weight,
                  shift_weight=pc.shift_weight, supported_above=pc.supported_above, shift_gain=pc.shift_gain,
                  found_shifted=pc.found_shifted, min_points=pc.min_points, min_visible=pc.min_visible,
                  move_gain=pc.move_gain if pc.moves else float("inf"),
-                 resize_gain=pc.resize_gain if pc.resizes else float("inf"))
+                 resize_gain=pc.resize_gain if pc.resizes else float("inf"), resize_factors=tuple(pc.resize_factors))
     return support, judge
 
 
@@ -195,34 +209,6 @@ def _slide(pe: PhotoEdges, xy: np.ndarray, ori: np.ndarray, sel: np.ndarray, shi
     return float(sup[j]), j
 
 
-def coarse_pixels(xy: np.ndarray, sel: np.ndarray, shape: tuple[int, int], detail_px: float) -> np.ndarray:
-    """``sel`` without the contour pixels of small pieces: of the pixels ``xy[sel]``, the 8-connected components
-    whose bounding box is under ``detail_px`` on its longer side are dropped (a LEGO stud's rim, a screw head: detail
-    the photo does not resolve at this scale). ``detail_px`` <= 0 keeps every pixel.
-
-    Parameters
-    ----------
-    xy : (N, 2) pixel centres (x, y) of a contour; sel : (N,) bool, the pixels considered
-    shape : (H, W) of the image the pixels lie in; detail_px : the smallest piece kept, px
-
-    Returns
-    -------
-    (N,) bool: ``sel`` and in a component at least ``detail_px`` across
-    """
-    sel = np.asarray(sel, bool)
-    if detail_px <= 0 or not sel.any():
-        return sel
-    H, W = shape
-    x = np.clip(np.rint(xy[:, 0]).astype(int), 0, W - 1)
-    y = np.clip(np.rint(xy[:, 1]).astype(int), 0, H - 1)
-    m = np.zeros((H, W), np.uint8)
-    m[y[sel], x[sel]] = 1
-    n, lab, stats, _ = cv2.connectedComponentsWithStats(m, connectivity=8)
-    big = np.maximum(stats[:, cv2.CC_STAT_WIDTH], stats[:, cv2.CC_STAT_HEIGHT]) >= detail_px
-    big[0] = False  # the background label
-    return sel & big[lab[y, x]]
-
-
 def part_support(renderer: Renderer, face_parts: np.ndarray, part_names, pe: PhotoEdges, T: np.ndarray, *,
                  fit_px: float = 1.5, max_bin_gap: int = 1, shift_frac: float = 0.12, shift_step: float = 2.0,
                  renderers: list[Renderer] | None = None, min_points: int = 12, kinds=(0, 1, 2),
@@ -230,8 +216,8 @@ def part_support(renderer: Renderer, face_parts: np.ndarray, part_names, pe: Pho
                  complements: list[tuple[Renderer, np.ndarray]] | None = None,
                  moves: bool = False, min_visible: float = 0.2, move_below: float = 0.9, move_changed: float = 0.3,
                  move_px: float = 4.0, move_collide: bool = True, solids: PartSolids | None = None,
-                 detail_px: float = 0.0, contrast_px: int = 3, resizes: bool = False, resize_factors=RESIZE_FACTORS
-                 ) -> list[PartSupport]:
+                 detail_px: float = 0.0, contrast_px: int = 3, resizes: bool = False, resize_factors=RESIZE_FACTORS,
+                 resize_below: float | None = None) -> list[PartSupport]:
     """Every part's support at pose ``T`` (verdicts not yet set: :func:`judge_parts`).
 
     Parameters
@@ -262,6 +248,8 @@ def part_support(renderer: Renderer, face_parts: np.ndarray, part_names, pe: Pho
         contour only when the other model has no contour pixel of a like orientation within this many crop px
     resizes, resize_factors : also test the part as long x each factor along a model axis (:func:`part_resizes`:
         ``size_gain``, ``size``) where the moves would (their conditions apply): a part of the wrong size
+    resize_below : the resizes' own support gate (None: ``move_below``'s); above the largest relative support every
+        visible part is tried (a part a little too short keeps most of its contour supported)
     """
     face_parts = np.asarray(face_parts)
     n_parts = len(part_names)
@@ -330,12 +318,15 @@ def part_support(renderer: Renderer, face_parts: np.ndarray, part_names, pe: Pho
         p.relative = float(p.support / med) if med > 0 else 0.0
     if moves or resizes:  # 3D moves / resizes of the parts the photo supports less than the median part
         fits: dict[int, MoveFit] = {}
+        resize_below = move_below if resize_below is None else resize_below
         for p in out:
             k = p.index
-            if not (p.n_points >= min_points and p.visible >= min_visible and p.relative < move_below
-                    and k < len(complements) and k < len(renderers)):
+            if not (p.n_points >= min_points and p.visible >= min_visible and k < len(complements)
+                    and k < len(renderers)):
                 continue
-            for family in (part_moves,) * moves + (part_resizes,) * resizes:
+            families = ((part_moves,) * (moves and p.relative < move_below)
+                        + (part_resizes,) * (resizes and p.relative < resize_below))
+            for family in families:
                 tried = family(whole, k) if family is part_moves else family(whole, k, factors=resize_factors)
                 if move_collide:
                     solids = solids if solids is not None else part_solids(whole)
@@ -391,7 +382,7 @@ def judge_parts(parts: list[PartSupport], *, flag_below: float = 0.6, colour_wei
                 revealed_weight: float = 0.0, shift_weight: float = 0.0, supported_above: float = 1.0,
                 shift_gain: float = 0.4, found_shifted: float = 0.97, min_points: int = 12,
                 min_visible: float = 0.2, move_gain: float = float("inf"),
-                resize_gain: float = float("inf")) -> list[PartSupport]:
+                resize_gain: float = float("inf"), resize_factors=None) -> list[PartSupport]:
     """Set each part's verdict (in place; returns ``parts``); supports are relative to the median judged part.
 
     ``not visible``: fewer than ``min_points`` visible contour pixels or less than ``min_visible`` of it in view.
@@ -405,13 +396,17 @@ def judge_parts(parts: list[PartSupport], *, flag_below: float = 0.6, colour_wei
     support is ``displaced`` whatever the rest says (its ``move`` says how), unless another part's move that also
     passes explains the same pixels better (``move_explained_by``, :func:`explain_away`). A part whose best resize
     (:func:`part_resizes`) gains at least ``resize_gain`` (and more than a passing move) is ``wrong``: a part of
-    another size is mounted there (its ``size`` says how).
+    another size is mounted there (its ``size`` says how). ``resize_factors``: only the resizes by these factors
+    count (the record keeps every resize tried, also those an assembly's verdict reads; None: all).
     """
     med, med_colour = photo_medians(parts, min_points, min_visible)
     for p in parts:
+        size_gain = p.size_gain if p.size else -np.inf
+        if resize_factors is not None and p.size_gains:
+            size_gain = max(of_factors(p.size_gains, resize_factors).values(), default=-np.inf)
         if p.n_points < min_points or p.visible < min_visible or med <= 0:
             p.verdict = "not visible"
-        elif p.size and p.size_gain >= resize_gain and not (p.move and p.move_gain >= max(move_gain, p.size_gain)):
+        elif size_gain >= resize_gain and not (p.move and p.move_gain >= max(move_gain, size_gain)):
             p.verdict = "wrong"
         elif p.move and p.move_gain >= move_gain and not (
                 0 <= p.move_explained_by < len(parts) and parts[p.move_explained_by].move_gain >= move_gain):
