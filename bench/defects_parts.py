@@ -46,7 +46,7 @@ sys.path.insert(0, str(REPO / "bench"))
 
 from pixie.config import PixieConfig  # noqa: E402
 from pixie.cues.edge_align import align_kwargs, edge_fit, photo_edges, photo_edges_kwargs  # noqa: E402
-from pixie.cues.part_moves import resize_factor  # noqa: E402
+from pixie.cues.part_moves import of_factors  # noqa: E402
 from pixie.cues.part_paint import set_spill  # noqa: E402
 from pixie.cues.part_views import combine_views, trusted_views, views_kwargs  # noqa: E402
 from pixie.cues.parts import (PartSupport, complement_renderers, hidden_from_runner_up, is_flip_runner_up,  # noqa: E402
@@ -192,8 +192,7 @@ def restricted(p: PartSupport, factors) -> PartSupport:
     resize among those, or none. Records without per-resize gains are left as they are."""
     if not p.size_gains:
         return p
-    keep = {n: g for n, g in p.size_gains.items()
-            if any(np.isclose(resize_factor(n), float(f"{f:.2g}")) for f in factors)}
+    keep = of_factors(p.size_gains, factors)
     best = max(keep, key=keep.get) if keep else ""
     if best != p.size:  # the support of another resize's own pixels is not kept
         p.size_support = 0.0
