@@ -46,11 +46,11 @@ sys.path.insert(0, str(REPO / "bench"))
 
 from pixie.config import PixieConfig  # noqa: E402
 from pixie.cues.edge_align import align_kwargs, edge_fit, photo_edges, photo_edges_kwargs  # noqa: E402
-from pixie.cues.part_moves import of_factors  # noqa: E402
 from pixie.cues.part_paint import set_spill  # noqa: E402
 from pixie.cues.part_views import combine_views, trusted_views, views_kwargs  # noqa: E402
 from pixie.cues.parts import (PartSupport, complement_renderers, hidden_from_runner_up, is_flip_runner_up,  # noqa: E402
-                              judge_parts, part_renderers, part_support, report_kwargs, robust_part_fit)
+                              judge_parts, only_resizes, part_renderers, part_support, report_kwargs,
+                              robust_part_fit)
 from pixie.eval import pose_error as M  # noqa: E402
 from pixie.eval.datasets import BopDataset  # noqa: E402
 from pixie.geometry.collide import part_solids  # noqa: E402
@@ -186,28 +186,14 @@ def analyse(data: Path, ests: dict, cfg: PixieConfig, echo=print, use_mask: bool
     return rows
 
 
-def restricted(p: PartSupport, factors) -> PartSupport:
-    """``p`` as if only the resizes by ``factors`` had been tried (records that keep every resize's gain, computed
-    with more factors than a config tries; factors compared as part_resizes names them, to 2 digits): its best
-    resize among those, or none. Records without per-resize gains are left as they are."""
-    if not p.size_gains:
-        return p
-    keep = of_factors(p.size_gains, factors)
-    best = max(keep, key=keep.get) if keep else ""
-    if best != p.size:  # the support of another resize's own pixels is not kept
-        p.size_support = 0.0
-    p.size_gains, p.size, p.size_gain = keep, best, keep.get(best, 0.0)
-    return p
-
-
 def _judged(parts: list[dict], cfg: PixieConfig, params: tuple) -> list[PartSupport]:
     """Stored part records judged under other (flag_below, colour_weight, revealed_weight, shift_weight[, move_gain[,
     alt_gap[, resize_gain]]]) (:func:`judge_parts` on the records; a missing resize_gain: none, as without resizes),
-    their resizes restricted to those the config tries (:func:`restricted`: ``cfg.parts.resize_factors`` for one
+    their resizes restricted to those the config tries (:func:`only_resizes`: ``cfg.parts.resize_factors`` for one
     photo's verdict, ``views_resize_factors`` for an assembly's)."""
     _, judge, _ = _kw(cfg, *params[:5], resize_gain=params[6] if len(params) > 6 else float("inf"))
     factors = sorted(set(cfg.parts.resize_factors) | set(cfg.parts.views_resize_factors))
-    return judge_parts([restricted(PartSupport.from_dict(p), factors) for p in parts], **judge)
+    return judge_parts([only_resizes(PartSupport.from_dict(p), factors) for p in parts], **judge)
 
 
 def row_verdicts(r: dict, cfg: PixieConfig, params: tuple, key: str = "parts") -> list[str]:

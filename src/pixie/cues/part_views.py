@@ -12,13 +12,12 @@ it, and the part is flagged when the mean is below ``config.parts.flag_below``, 
 
 from __future__ import annotations
 
-from dataclasses import dataclass, replace
+from dataclasses import dataclass
 
 import numpy as np
 
 from pixie.config import PartsConfig
-from pixie.cues.part_moves import of_factors
-from pixie.cues.parts import PartSupport, part_score, photo_medians
+from pixie.cues.parts import PartSupport, only_resizes, part_score, photo_medians
 from pixie.pose.results import SUSPECT_VERDICTS
 
 __all__ = ["AssemblyPart", "views_kwargs", "part_scores", "trusted_views", "mean_gain", "mean_spill", "combine_views"]
@@ -91,10 +90,10 @@ def mean_gain(seen: list[PartSupport], what: str, same_hypothesis: bool = False,
     not judged: it changed nothing in view), and the best such mean: one physical change that every photo must
     support, where the best of each photo may be a different change (photos whose records keep no per-move gains
     count with their best move under its name). ``factors`` (resizes only): only the resizes by these length factors
-    count, in records that keep every resize's gain (:func:`pixie.cues.part_moves.of_factors`; None: all).
+    count, in records that keep every resize's gain (:func:`pixie.cues.parts.only_resizes`; None: all).
     """
     if factors is not None and what == "size":
-        seen = [_only(p, factors) for p in seen]
+        seen = [only_resizes(p, factors) for p in seen]
     named = [(getattr(p, what), getattr(p, f"{what}_gain")) for p in seen]  # each photo's best: (name, gain)
     if not same_hypothesis:
         top = max(named, key=lambda ng: ng[1] if ng[0] else -np.inf)[0]
@@ -106,15 +105,6 @@ def mean_gain(seen: list[PartSupport], what: str, same_hypothesis: bool = False,
     means = [float(np.mean([g.get(n, 0.0) for g in per])) for n in names]
     i = int(np.argmax(means))
     return means[i], names[i]
-
-
-def _only(p: PartSupport, factors) -> PartSupport:
-    """``p`` with only its resizes by ``factors`` (a copy; records without per-resize gains as they are)."""
-    if not p.size_gains:
-        return p
-    keep = of_factors(p.size_gains, factors)
-    best = max(keep, key=keep.get) if keep else ""
-    return replace(p, size_gains=keep, size=best, size_gain=keep.get(best, 0.0))
 
 
 def mean_spill(reports: list[list[PartSupport]], k: int, cap: float = 0.5) -> float:

@@ -52,8 +52,8 @@ from pixie.cues.part_moves import (MoveFit, coarse_pixels, explain_away, explain
 from pixie.geometry.render import Renderer
 from pixie.pose.results import SUSPECT_VERDICTS
 
-__all__ = ["VERDICTS", "PartSupport", "tried_resizes", "report_kwargs", "part_renderers", "complement_renderers", "part_support",
-           "part_score", "photo_medians", "judge_parts", "robust_part_fit",
+__all__ = ["VERDICTS", "PartSupport", "only_resizes", "tried_resizes", "report_kwargs", "part_renderers",
+           "complement_renderers", "part_support", "part_score", "photo_medians", "judge_parts", "robust_part_fit",
            "hidden_from_runner_up", "is_flip_runner_up"]
 
 VERDICTS = ("present", "missing", "displaced", "wrong", "not visible")
@@ -124,12 +124,21 @@ class PartSupport:
                    spill=float("nan") if d.get("paint_spill") is None else float(d["paint_spill"]))
 
 
+def only_resizes(p: PartSupport, factors) -> PartSupport:
+    """A copy of ``p`` as if only the resizes by ``factors`` (:func:`of_factors`) had been tried: its best one among
+    them, or none ('', gain 0). Records without per-resize gains are returned as they are."""
+    if not p.size_gains:
+        return p
+    keep = of_factors(p.size_gains, factors)
+    best = max(keep, key=keep.get) if keep else ""
+    support = p.size_support if best == p.size else 0.0  # the support of another resize's own pixels is not kept
+    return replace(p, size_gains=keep, size=best, size_gain=keep.get(best, 0.0), size_support=support)
+
+
 def tried_resizes(pc: PartsConfig) -> tuple[tuple[float, ...], float]:
-    """The resize factors ``config.parts`` has :func:`part_support` try and the relative support below which a part
-    is tried: ``resize_factors`` below ``resize_below`` for one photo's verdict (``pc.resizes``), and with the
-    evidence an assembly's verdict uses (``pc.evidence`` and ``views_resize_gain`` <= 1) ``views_resize_factors``
-    below ``views_resize_below`` too (one set tried on the parts either gate lets through; each verdict then reads
-    its own factors' gains). ((), 0) when neither is on."""
+    """The resize factors :func:`part_support` tries and its support gate: ``resize_factors`` / ``resize_below`` for one
+    photo's verdict (``pc.resizes``), with an assembly's evidence (``pc.evidence``, ``views_resize_gain`` <= 1) also
+    ``views_resize_factors`` / ``views_resize_below``; each verdict reads its own (:func:`only_resizes`). ((), 0): none."""
     photo, views = pc.resizes, pc.evidence and pc.views_resize_gain <= 1
     factors = sorted(set(pc.resize_factors if photo else []) | set(pc.views_resize_factors if views else []))
     below = max([pc.resize_below] * photo + [pc.views_resize_below] * views, default=0.0)
@@ -139,8 +148,7 @@ def tried_resizes(pc: PartsConfig) -> tuple[tuple[float, ...], float]:
 def report_kwargs(pc: PartsConfig) -> tuple[dict, dict]:
     """The keywords of :func:`part_support` and of :func:`judge_parts` that ``config.parts`` sets (``pc.evidence``:
     the 3D moves / resizes an assembly's verdict uses, ``pc.views_move_gain`` / ``views_resize_gain`` <= 1, are
-    tried, but a photo is judged on them only with ``pc.moves`` / ``pc.resizes``, and on its ``resize_factors``
-    only)."""
+    tried, but a photo is judged on them only with ``pc.moves`` / ``pc.resizes`` (its ``resize_factors``))."""
     factors, below = tried_resizes(pc)
     support = dict(fit_px=pc.fit_px, shift_frac=pc.shift_frac, min_points=pc.min_points, colour_ab=pc.colour_ab,
                    step_frac=pc.step_frac, detail_px=pc.detail_px, contrast_px=pc.contrast_px,
@@ -248,8 +256,7 @@ def part_support(renderer: Renderer, face_parts: np.ndarray, part_names, pe: Pho
         contour only when the other model has no contour pixel of a like orientation within this many crop px
     resizes, resize_factors : also test the part as long x each factor along a model axis (:func:`part_resizes`:
         ``size_gain``, ``size``) where the moves would (their conditions apply): a part of the wrong size
-    resize_below : the resizes' own support gate (None: ``move_below``'s); above the largest relative support every
-        visible part is tried (a part a little too short keeps most of its contour supported)
+    resize_below : the resizes' own relative-support gate (None: ``move_below``); high: every visible part is tried
     """
     face_parts = np.asarray(face_parts)
     n_parts = len(part_names)
@@ -396,14 +403,12 @@ def judge_parts(parts: list[PartSupport], *, flag_below: float = 0.6, colour_wei
     support is ``displaced`` whatever the rest says (its ``move`` says how), unless another part's move that also
     passes explains the same pixels better (``move_explained_by``, :func:`explain_away`). A part whose best resize
     (:func:`part_resizes`) gains at least ``resize_gain`` (and more than a passing move) is ``wrong``: a part of
-    another size is mounted there (its ``size`` says how). ``resize_factors``: only the resizes by these factors
-    count (the record keeps every resize tried, also those an assembly's verdict reads; None: all).
+    another size is mounted there (its ``size`` says how); only the resizes by ``resize_factors`` count (None: all).
     """
     med, med_colour = photo_medians(parts, min_points, min_visible)
     for p in parts:
-        size_gain = p.size_gain if p.size else -np.inf
-        if resize_factors is not None and p.size_gains:
-            size_gain = max(of_factors(p.size_gains, resize_factors).values(), default=-np.inf)
+        read = only_resizes(p, resize_factors) if resize_factors is not None else p
+        size_gain = read.size_gain if read.size else -np.inf
         if p.n_points < min_points or p.visible < min_visible or med <= 0:
             p.verdict = "not visible"
         elif size_gain >= resize_gain and not (p.move and p.move_gain >= max(move_gain, size_gain)):
